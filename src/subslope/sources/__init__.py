@@ -1,0 +1,1 @@
+"""Source-light catalogues: real COSMOS galaxies (default) and parametric alternatives."""
