@@ -1,0 +1,25 @@
+# subslope: subhalo effective density slope from HST strong lenses with neural
+# likelihood-ratio estimation (Zhang, Sengul & Dvorkin 2023).
+# This file is the table of contents of the workflow; each stage lives in its own
+# workflow/rules/<stage>.smk and the logic in the `subslope` package (src/subslope).
+#
+# Run:  snakemake --cores 2                        (config/config.yaml)
+#       snakemake --cores 2 --configfile my.yaml   (another campaign)
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/resources.smk"
+include: "workflow/rules/figures.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        all_targets(),

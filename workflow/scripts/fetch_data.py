@@ -1,0 +1,20 @@
+"""Snakemake script of rule fetch_data: copy/download and verify the data resources."""
+
+import logging
+
+from subslope.resources import fetch_files
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    fetch_files(
+        snakemake.output,
+        mirror=snakemake.config["data"]["mirror"],
+        allow_download=snakemake.config["data"]["allow_download"],
+    )
+except Exception:
+    logging.exception("fetch_data failed")
+    raise
