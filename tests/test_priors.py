@@ -1,0 +1,130 @@
+"""Tests of subslope.priors: each family against its distribution, errors, seeding."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from subslope.priors import DISTRIBUTIONS, Fixed, Normal, PowerLaw, Prior, PriorError, Uniform, UniformInt
+
+N = 20_000
+
+
+def test_uniform_matches_distribution(rng):
+    p = Prior.from_config({"dist": "uniform", "low": 0.9, "high": 1.3}, "k")
+    assert isinstance(p, Uniform)
+    x = p.sample(rng, N)
+    assert x.dtype == np.float64 and x.shape == (N,)
+    assert stats.kstest(x, stats.uniform(0.9, 0.4).cdf).pvalue > 1e-3
+    assert p.support == (0.9, 1.3) and p.mean == pytest.approx(1.1)
+
+
+def test_truncated_normal_matches_distribution_and_bounds(rng):
+    p = Prior.from_config({"dist": "normal", "mean": 2.0, "std": 0.2, "low": 1.9, "high": 2.9}, "k")
+    x = p.sample(rng, N)
+    assert x.min() >= 1.9 and x.max() <= 2.9
+    ref = stats.truncnorm((1.9 - 2.0) / 0.2, (2.9 - 2.0) / 0.2, loc=2.0, scale=0.2)
+    assert stats.kstest(x, ref.cdf).pvalue > 1e-3
+    assert p.mean == pytest.approx(ref.mean())
+    assert abs(x.mean() - ref.mean()) < 5 * ref.std() / math.sqrt(N)
+
+
+def test_one_sided_and_untruncated_normal(rng):
+    p = Prior.from_config({"dist": "normal", "mean": 0.8, "std": 0.15, "low": 0.01}, "k")
+    x = p.sample(rng, N)
+    assert x.min() >= 0.01 and p.support == (0.01, math.inf)
+    q = Prior.from_config({"dist": "normal", "mean": 1.0, "std": 2.0}, "k")
+    assert stats.kstest(q.sample(rng, N), stats.norm(1.0, 2.0).cdf).pvalue > 1e-3
+
+
+def test_far_tail_truncation_is_exact_and_does_not_hang(rng):
+    # Probability mass ~1e-15 under the untruncated normal: rejection would never finish.
+    p = Prior.from_config({"dist": "normal", "mean": 0.0, "std": 1.0, "low": 8.0, "high": 9.0}, "k")
+    x = p.sample(rng, 5000)
+    assert np.all((x >= 8.0) & (x <= 9.0))
+    assert stats.kstest(x, stats.truncnorm(8.0, 9.0).cdf).pvalue > 1e-3
+
+
+def test_uniform_int_inclusive_chi2(rng):
+    p = Prior.from_config({"dist": "uniform_int", "low": 0, "high": 9}, "k")
+    x = p.sample(rng, N)
+    assert x.dtype == np.float64 and np.all(x == np.round(x))
+    counts = np.bincount(x.astype(int), minlength=10)
+    assert counts.size == 10 and counts[0] > 0 and counts[9] > 0  # both ends reached
+    assert stats.chisquare(counts).pvalue > 1e-3
+    assert p.mean == 4.5
+    big = Prior.from_config({"dist": "uniform_int", "low": 0, "high": 3000}, "k").sample(rng, N)
+    assert big.min() >= 0 and big.max() <= 3000
+
+
+def test_power_law_matches_distribution(rng):
+    p = Prior.from_config({"dist": "power_law", "slope": -1.9, "low": 1e7, "high": 1e10}, "k")
+    x = p.sample(rng, N)
+    assert x.min() >= 1e7 and x.max() <= 1e10
+    # Analytic CDF of p(x) ∝ x^-1.9 written independently of the implementation.
+    k = -0.9
+    cdf = lambda m: (m**k - 1e7**k) / (1e10**k - 1e7**k)  # noqa: E731
+    assert stats.kstest(x, cdf).pvalue > 1e-3
+    assert abs(x.mean() - p.mean) < 5 * x.std() / math.sqrt(N)
+    flat = Prior.from_config({"dist": "power_law", "slope": -1.0, "low": 1.0, "high": 100.0}, "k")
+    assert stats.kstest(np.log10(flat.sample(rng, N)), stats.uniform(0, 2).cdf).pvalue > 1e-3
+
+
+def test_fixed_and_number_shorthand(rng):
+    assert np.all(Prior.from_config({"dist": "fixed", "value": 0.3}, "k").sample(rng, 5) == 0.3)
+    p = Prior.from_config(1.5, "k")
+    assert isinstance(p, Fixed) and p.mean == 1.5 and p.support == (1.5, 1.5)
+
+
+@pytest.mark.parametrize("cls", [Uniform, Normal, UniformInt, PowerLaw, Fixed])
+def test_round_trip_to_config(cls):
+    examples = {
+        Uniform: {"dist": "uniform", "low": -1.0, "high": 2.0},
+        Normal: {"dist": "normal", "mean": 2.0, "std": 0.1, "low": 1.1, "high": 2.9},
+        UniformInt: {"dist": "uniform_int", "low": 0, "high": 3},
+        PowerLaw: {"dist": "power_law", "slope": -1.9, "low": 1e7, "high": 1e10},
+        Fixed: {"dist": "fixed", "value": 0.0},
+    }
+    d = examples[cls]
+    assert Prior.from_config(d, "k").to_config() == d
+    assert set(DISTRIBUTIONS) == {"uniform", "normal", "uniform_int", "power_law", "fixed"}
+
+
+def test_same_seed_same_draws():
+    p = Prior.from_config({"dist": "normal", "mean": 2.0, "std": 0.1, "low": 1.1, "high": 2.9}, "k")
+    a = p.sample(np.random.default_rng(5), 100)
+    b = p.sample(np.random.default_rng(5), 100)
+    c = p.sample(np.random.default_rng(6), 100)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+@pytest.mark.parametrize(
+    "spec, needle",
+    [
+        ({"dist": "uniform", "low": 1.3, "high": 0.9}, "scenes.train.main_lens.theta_e.low"),
+        ({"dist": "gauss", "mean": 1}, "scenes.train.main_lens.theta_e.dist"),
+        ({"dist": "uniform", "low": 0.9}, "missing high"),
+        ({"dist": "uniform", "low": 0.9, "high": 1.3, "mean": 1}, "unknown key(s) mean"),
+        ({"dist": "normal", "mean": 1.0, "std": 0.0}, "scenes.train.main_lens.theta_e.std"),
+        ({"dist": "normal", "mean": 0.0, "std": 0.01, "low": 5.0, "high": 6.0}, "no probability mass"),
+        ({"dist": "uniform", "low": "a", "high": 1.0}, "scenes.train.main_lens.theta_e.low"),
+        ({"dist": "uniform", "low": float("nan"), "high": 1.0}, "finite"),
+        ({"dist": "uniform_int", "low": 0.5, "high": 3}, "integer"),
+        ({"dist": "power_law", "slope": -1.9, "low": 0.0, "high": 1e10}, "must be > 0"),
+        ("uniform", "is not a prior"),
+    ],
+)
+def test_bad_specs_raise_naming_the_key(spec, needle):
+    with pytest.raises(PriorError) as err:
+        Prior.from_config(spec, key="scenes.train.main_lens.theta_e")
+    assert needle in str(err.value)
+    assert isinstance(err.value, ValueError)
+    assert "scenes.train.main_lens.theta_e" in str(err.value)
+
+
+def test_sample_requires_generator():
+    with pytest.raises(TypeError):
+        Uniform(0.0, 1.0).sample(np.random.RandomState(0), 3)

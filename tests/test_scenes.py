@@ -1,0 +1,212 @@
+"""Tests of subslope.scenes: paper defaults, config errors, macro sampling."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+import yaml
+from scipy import stats
+
+from subslope.priors import Normal, PriorError, Uniform, UniformInt
+from subslope.scenes import PRESETS, Scene, SceneError, sample_macro, scenes_from_config  # noqa: F401
+
+ROOT = Path(__file__).resolve().parents[1]
+FRAGMENT = ROOT / "config" / "_scenes_fragment.yaml"
+SCHEMA_FRAGMENT = ROOT / "src" / "subslope" / "schemas" / "_scenes_fragment.schema.yaml"
+
+ALWAYS = {
+    "z_lens", "z_source", "src_x", "src_y", "src_rotation", "lens_x", "lens_y", "theta_e",
+    "lens_e1", "lens_e2", "gamma_ml", "set_index",
+}
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return scenes_from_config({})
+
+
+def test_named_scenes_exist(scenes):
+    assert {"train", "validation", "test_epl", "nfw", "tnfw"} <= set(scenes) == set(PRESETS)
+
+
+def test_train_defaults_equal_paper_table(scenes):
+    s = scenes["train"]
+    assert s.redshifts.z_lens == Uniform(0.15, 0.25) and s.redshifts.z_source == Uniform(0.5, 0.7)
+    assert s.source.x == Uniform(-0.1, 0.1) and s.source.kind == "cosmos" and s.source.split == "train"
+    assert s.main_lens.x == Uniform(-0.2, 0.2)
+    assert s.main_lens.theta_e == Uniform(0.9, 1.3)
+    assert s.main_lens.e1 == Uniform(-0.2, 0.2)
+    assert s.main_lens.gamma == Normal(2.0, 0.1, 1.1, 2.9)  # paper σ, not the code's 0.2
+    assert s.multipoles.a3 == Uniform(0.0, 0.05) and s.multipoles.phi4 == Uniform(-math.pi, math.pi)
+    assert s.shear.g1 == Uniform(-0.1, 0.1)
+    assert s.lens_light.mag == Uniform(17.0, 19.0)  # paper, not U(16, 19)
+    assert s.lens_light.n_sersic == Normal(2.0, 0.5, 0.5, 8.0)
+    assert s.lens_light.r_sersic.loc == 0.8 and s.lens_light.r_sersic.std == 0.15
+    assert s.lens_light.r_sersic.support[0] > 0
+    assert s.lens_light.e2 == Uniform(-0.1, 0.1)
+    sub = s.subhalos
+    assert sub.count == UniformInt(0, 3000)
+    assert (sub.mass.slope, sub.mass.low, sub.mass.high) == (-1.9, 1e7, 1e10)
+    assert sub.gamma == Uniform(1.1, 2.9)
+    assert sub.gamma_scatter == 0.1 and sub.gamma_bounds == (1.01, 2.99)
+    assert sub.e1 == Uniform(-0.2, 0.2)
+    assert (sub.profile, sub.placement, sub.threshold_fraction) == ("epl", "arc", 0.2)
+    assert s.los.delta_los == Uniform(0.0, 2.0) and s.los.profile == "epl"
+    assert s.images_per_set == 1 and s.has_label and not s.uses_concentration
+
+
+def test_evaluation_and_cdm_presets(scenes):
+    v, t = scenes["validation"], scenes["test_epl"]
+    assert v.subhalos.count == UniformInt(0, 1800) and v.source.split == "validation"
+    assert v.main_lens == scenes["train"].main_lens
+    assert t.images_per_set == 13 and t.source.split == "test" and t.subhalos.count == UniformInt(0, 1800)
+    for name, prof in (("nfw", "nfw"), ("tnfw", "tnfw")):
+        c = scenes[name]
+        assert c.subhalos.profile == prof and c.subhalos.placement == "everywhere"
+        assert c.los.profile == "nfw" and c.images_per_set == 13
+        assert c.subhalos.count == UniformInt(0, 1800)
+        assert c.concentration.scatter_dex == 0.1 and c.concentration.apply_to_los is False
+        assert 1.0 in c.concentration.multipliers
+        assert c.uses_concentration and not c.has_label
+
+
+def test_overrides_merge_and_replace_priors():
+    s = Scene.from_config(
+        "train",
+        {
+            "main_lens": {"gamma": {"dist": "normal", "mean": 2.0, "std": 0.2, "low": 1.1, "high": 2.9}},
+            "lens_light": {"mag": {"dist": "uniform", "low": 16.0, "high": 19.0}},
+            "subhalos": {"threshold_fraction": 0.5},
+        },
+    )
+    assert s.main_lens.gamma.std == 0.2 and s.main_lens.theta_e == Uniform(0.9, 1.3)
+    assert s.lens_light.mag == Uniform(16.0, 19.0)
+    assert s.subhalos.threshold_fraction == 0.5 and s.subhalos.count == UniformInt(0, 3000)
+    custom = scenes_from_config({"mine": {"images_per_set": 4}})["mine"]
+    assert custom.images_per_set == 4 and custom.subhalos.count == UniformInt(0, 3000)
+
+
+@pytest.mark.parametrize(
+    "spec, needle",
+    [
+        ({"main_lens": {"theta_e": {"dist": "uniform", "low": 1.3, "high": 0.9}}}, "scenes.train.main_lens.theta_e.low"),
+        ({"main_lens": {"theta_e": {"dist": "uniform", "low": -1.0, "high": 0.9}}}, "scenes.train.main_lens.theta_e"),
+        ({"main_lens": {"theta_ee": 1.0}}, "scenes.train.main_lens.theta_ee"),
+        ({"subhalos": {"profile": "burkert"}}, "scenes.train.subhalos.profile"),
+        ({"subhalos": {"placement": "ring"}}, "scenes.train.subhalos.placement"),
+        ({"subhalos": {"threshold_fraction": 1.5}}, "scenes.train.subhalos.threshold_fraction"),
+        ({"subhalos": {"count": {"dist": "uniform", "low": 0, "high": 5}}}, "scenes.train.subhalos.count"),
+        ({"subhalos": {"gamma": {"dist": "uniform", "low": 0.5, "high": 2.9}}}, "scenes.train.subhalos.gamma"),
+        ({"subhalos": {"mass": {"slope": -1.9, "m_min": 1e10, "m_max": 1e7}}}, "scenes.train.subhalos.mass.low"),
+        ({"redshifts": {"z_source": {"dist": "uniform", "low": 0.2, "high": 0.7}}}, "scenes.train.redshifts"),
+        ({"source": {"split": "dev"}}, "scenes.train.source.split"),
+        ({"components": {"shear": "yes"}}, "scenes.train.components.shear"),
+        ({"images_per_set": 0}, "scenes.train.images_per_set"),
+        ({"los": {"profile": "tnfw"}}, "scenes.train.los.profile"),
+        ({"concentration": {"multipliers": []}}, "scenes.train.concentration.multipliers"),
+    ],
+)
+def test_bad_scene_config_names_key(spec, needle):
+    with pytest.raises(PriorError) as err:  # SceneError is a PriorError
+        scenes_from_config({"train": spec})
+    assert needle in str(err.value)
+    assert isinstance(err.value, ValueError)
+
+
+def test_macro_keys_shapes_and_ranges(scenes, rng):
+    m = sample_macro(scenes["train"], 500, rng)
+    expected = ALWAYS | {"a3", "phi3", "a4", "phi4", "shear_g1", "shear_g2", "light_mag", "light_r",
+                         "light_n", "light_e1", "light_e2", "n_sub", "gamma_sub", "delta_los"}
+    assert set(m) == expected
+    for k, v in m.items():
+        assert v.shape == (500,), k
+        assert v.dtype == (np.int64 if k in ("n_sub", "set_index") else np.float64), k
+    assert np.all((m["theta_e"] >= 0.9) & (m["theta_e"] <= 1.3))
+    assert np.all((m["gamma_ml"] >= 1.1) & (m["gamma_ml"] <= 2.9))
+    assert np.all((m["n_sub"] >= 0) & (m["n_sub"] <= 3000))
+    assert np.all(m["light_r"] > 0) and np.all((m["light_n"] >= 0.5) & (m["light_n"] <= 8))
+    assert np.all(m["z_source"] > m["z_lens"])
+    assert np.array_equal(m["set_index"], np.arange(500))
+    g = sample_macro(scenes["train"], 5000, rng)["gamma_sub"]
+    assert stats.kstest(g, stats.uniform(1.1, 1.8).cdf).pvalue > 1e-3
+
+
+def test_components_off_are_absent_and_other_draws_unchanged(scenes):
+    off = Scene.from_config(
+        "train",
+        {"components": {"lens_light": False, "multipoles": False, "shear": False, "subhalos": False, "los": False}},
+    )
+    a = sample_macro(off, 50, np.random.default_rng(1))
+    b = sample_macro(scenes["train"], 50, np.random.default_rng(1))
+    # EPL LoS off and subhalos off: no label either.
+    assert set(a) == ALWAYS
+    for k in ALWAYS:
+        assert np.array_equal(a[k], b[k]), k
+    only_los = Scene.from_config("train", {"components": {"subhalos": False}})
+    c = sample_macro(only_los, 50, np.random.default_rng(1))
+    assert "n_sub" not in c and "gamma_sub" in c and "delta_los" in c
+
+
+def test_sets_share_gamma(scenes, rng):
+    m = sample_macro(scenes["test_epl"], 13 * 40, rng)
+    g = m["gamma_sub"].reshape(40, 13)
+    assert np.all(g == g[:, :1])
+    assert np.unique(g[:, 0]).size == 40
+    assert np.array_equal(m["set_index"], np.repeat(np.arange(40), 13))
+    assert np.unique(m["theta_e"]).size == 13 * 40  # other parameters vary per image
+    with pytest.raises(ValueError, match="multiple of images_per_set"):
+        sample_macro(scenes["test_epl"], 20, rng)
+
+
+def test_same_seed_identical_draws(scenes):
+    a = sample_macro(scenes["validation"], 64, np.random.default_rng(42))
+    b = sample_macro(scenes["validation"], 64, np.random.default_rng(42))
+    c = sample_macro(scenes["validation"], 64, np.random.default_rng(43))
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert not np.array_equal(a["theta_e"], c["theta_e"])
+
+
+def test_cdm_scene_multiplier(scenes, rng):
+    with pytest.raises(ValueError, match="multiplier"):
+        sample_macro(scenes["nfw"], 13, rng)
+    m = sample_macro(scenes["nfw"], 26, rng, multiplier=2.0)
+    assert "gamma_sub" not in m and np.all(m["c_multiplier"] == 2.0)
+    one = Scene.from_config("nfw", {"concentration": {"multipliers": [1.0]}})
+    assert np.all(sample_macro(one, 13, rng)["c_multiplier"] == 1.0)
+
+
+def test_sersic_source_keys(rng):
+    s = Scene.from_config("train", {"source": {"kind": "sersic"}})
+    m = sample_macro(s, 10, rng)
+    assert {"src_mag", "src_r", "src_n", "src_e1", "src_e2"} <= set(m)
+    assert "src_mag" not in sample_macro(Scene.from_config("train"), 10, rng)
+
+
+def test_config_fragment_matches_presets_and_schema():
+    cfg = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))
+    from_fragment = scenes_from_config(cfg["scenes"])
+    assert from_fragment == scenes_from_config({})
+    frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "type": "object",
+        "properties": frag["properties"],
+        "$defs": frag["$defs"],
+    }
+    jsonschema.Draft202012Validator.check_schema(schema)
+    validator = jsonschema.Draft202012Validator(schema)
+    assert not list(validator.iter_errors(cfg))
+    bad = {"scenes": {"train": {"main_lens": {"theta_e": {"dist": "uniform", "low": 1}}}}}
+    assert list(validator.iter_errors(bad))
+    bad = {"scenes": {"nfw": {"subhalos": {"profile": "burkert"}}}}
+    assert list(validator.iter_errors(bad))
+    # Every schema default of a scene key equals the train preset value.
+    train = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))["scenes"]["train"]
+    for section, sub in frag["$defs"]["scene"]["properties"].items():
+        for key, entry in sub.get("properties", {}).items():
+            if "default" in entry:
+                assert entry["default"] == train[section][key], f"{section}.{key}"
