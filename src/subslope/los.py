@@ -161,6 +161,48 @@ class LosBatch:
         return LosHalos(z=self.z[s], x=self.x[s], y=self.y[s], m200=self.m200[s])
 
 
+@dataclass(frozen=True)
+class LosPopulation:
+    """LoS halos of many systems with the lens parameters the renderer needs.
+
+    Ragged like :class:`LosBatch` (flat arrays + ``counts`` per system). ``z`` is each
+    halo's plane redshift (a slice mid redshift shared by all systems of a scene), so
+    halos group into planes by equal ``z``. Parameters follow the lenstronomy
+    multi-plane convention: they give the *reduced* deflection for a source at the
+    system's z_source. Fields that do not apply to ``profile`` are ``None``:
+
+    - ``profile == "epl"``: ``amp`` (θ_E^(γ−1), arcsec^(γ−1)), ``gamma``, ``e1``, ``e2``;
+    - ``profile == "nfw"``: ``c200``, ``r_s`` and ``alpha_rs`` (arcsec).
+    """
+
+    profile: str
+    counts: np.ndarray
+    z: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    m200: np.ndarray
+    amp: np.ndarray | None = None
+    gamma: np.ndarray | None = None
+    e1: np.ndarray | None = None
+    e2: np.ndarray | None = None
+    c200: np.ndarray | None = None
+    r_s: np.ndarray | None = None
+    alpha_rs: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.profile not in ("epl", "nfw"):
+            raise ValueError(f"LosPopulation.profile must be 'epl' or 'nfw', got {self.profile!r}")
+        n = int(np.sum(self.counts))
+        for name in ("z", "x", "y", "m200", "amp", "gamma", "e1", "e2", "c200", "r_s", "alpha_rs"):
+            value = getattr(self, name)
+            if value is not None and len(value) != n:
+                raise ValueError(f"LosPopulation.{name} has {len(value)} entries, counts sum to {n}")
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
+
+
 # --------------------------------------------------------------------------------------
 # validation helpers
 # --------------------------------------------------------------------------------------
