@@ -17,6 +17,7 @@ configfile: "config/config.yaml"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/resources.smk"
 include: "workflow/rules/figures.smk"
+include: "workflow/rules/simulate.smk"
 
 
 rule all:

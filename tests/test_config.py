@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import pytest
@@ -9,37 +10,118 @@ import yaml
 
 from subslope import config as cfg
 from subslope.cli import main as cli_main
+from subslope.scenes import scenes_from_config
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config" / "config.yaml"
 
 
+#: Keys of config/config.yaml that deliberately differ from the schema defaults (the
+#: reference values): the 10 bundled COSMOS galaxies need relaxed cuts and a coarser split.
+SHIPPED_DEVIATIONS = {("simulation", "sources", "cuts"), ("simulation", "sources", "split")}
+
+#: Scene keys without a schema default (their preset differs between scenes; see the
+#: header of the schema): paths relative to $defs.scene.
+SCENE_KEYS_WITHOUT_DEFAULT = {
+    "images_per_set", "source.split", "subhalos.count", "subhalos.profile",
+    "subhalos.placement", "los.profile",
+}
+
+
+def _without(config, paths):
+    out = copy.deepcopy(config)
+    for path in paths:
+        node = out
+        for key in path[:-1]:
+            node = node[key]
+        node.pop(path[-1])
+    return out
+
+
 def test_shipped_config_is_valid_and_complete():
     loaded = cfg.load(CONFIG, env=False)
-    # The shipped file spells out every key, so it equals the pure-defaults config.
-    assert loaded == cfg.validate({})
+    defaults = cfg.validate({})
+    # The shipped file spells out every key, so apart from the documented deviations
+    # it equals the pure-defaults config; scenes compare as resolved Scene objects
+    # (the file writes the train scene out in full, the defaults are the presets).
+    assert scenes_from_config(loaded["scenes"]) == scenes_from_config(defaults["scenes"])
+    strip = SHIPPED_DEVIATIONS | {("scenes",)}
+    assert _without(loaded, strip) == _without(defaults, strip)
+    assert loaded["simulation"]["sources"]["cuts"]["mag_max"] is None
     assert loaded["instrument"]["pixel_scale"] == 0.04
     assert loaded["instrument"]["npix"] == 100
     assert loaded["instrument"]["psf"]["source"] == "empirical"
     assert loaded["cosmology"]["name"] == "Planck18"
     assert loaded["stages"]["gallery"] is True
+    assert loaded["stages"]["simulation"] is True
+
+
+def test_tiny_config_is_valid():
+    tiny = cfg.load(REPO / "config" / "tiny.yaml", env=False)
+    counts = tiny["simulation"]["scenes"]
+    scenes = scenes_from_config(tiny["scenes"])
+    for name, c in counts.items():
+        assert c["images_per_shard"] % scenes[name].images_per_set == 0, name
+        assert c["n_shards"] * c["images_per_shard"] <= 8, name
 
 
 def test_every_schema_key_is_typed_described_defaulted():
-    def walk(schema, path):
-        for key, sub in schema.get("properties", {}).items():
+    schema = cfg.load_schema()
+    defs = schema["$defs"]
+    seen_refs: set[str] = set()
+    without_default: set[str] = set()
+
+    def resolve(sub):
+        ref = sub.get("$ref")
+        if ref is None:
+            return sub, None
+        assert ref.startswith("#/$defs/"), ref
+        name = ref.split("/")[-1]
+        return {**defs[name], **{k: v for k, v in sub.items() if k != "$ref"}}, name
+
+    def check_prior(where):
+        for branch in defs["prior"]["oneOf"]:
+            assert "type" in branch, f"{where}: prior branch without type"
+            if branch["type"] == "object":
+                assert branch.get("additionalProperties") is False, where
+                for key, field in branch["properties"].items():
+                    assert "description" in field, f"{where}.{key}"
+
+    def walk(schema, path, scene_path=None):
+        entries = dict(schema.get("properties", {}))
+        if isinstance(schema.get("additionalProperties"), dict):
+            entries["<any>"] = schema["additionalProperties"]
+        for key, raw in entries.items():
             where = f"{path}.{key}".lstrip(".")
-            assert "type" in sub and "description" in sub and "default" in sub, where
-            if sub["type"] in ("number", "integer") and key != "seed":
+            sub, ref = resolve(raw)
+            inner = None if scene_path is None else f"{scene_path}.{key}".lstrip(".")
+            assert "description" in sub or key == "<any>", where
+            if "default" not in sub and key != "<any>":
+                assert inner is not None, f"{where} has no default"
+                without_default.add(inner)
+            if ref == "prior":
+                check_prior(where)
+                continue
+            assert "type" in sub, where
+            types = {sub["type"]} if isinstance(sub["type"], str) else set(sub["type"])
+            if types & {"number", "integer"} and key != "seed":
                 assert {"minimum", "exclusiveMinimum"} & set(sub), f"{where} has no lower bound"
                 assert {"maximum", "exclusiveMaximum"} & set(sub), f"{where} has no upper bound"
-            if sub["type"] == "object":
-                assert sub.get("additionalProperties") is False, where
-                walk(sub, where)
+            if "object" in types and "properties" in sub:
+                if ref is not None:
+                    if ref in seen_refs:
+                        continue
+                    seen_refs.add(ref)
+                is_scene = ref == "scene"
+                assert sub.get("additionalProperties") is False or (
+                    "propertyNames" in sub and isinstance(sub.get("additionalProperties"), dict)
+                ), where
+                walk(sub, where, "" if is_scene else (inner if scene_path is not None else None))
 
-    schema = cfg.load_schema()
     assert schema["additionalProperties"] is False
     walk(schema, "")
+    assert {"scene", "prior", "shard_counts"} <= seen_refs | {"prior"}
+    assert without_default == SCENE_KEYS_WITHOUT_DEFAULT
 
 
 def test_workflow_schema_is_the_package_schema():
@@ -73,6 +155,18 @@ def test_defaults_fill_partial_sections():
         ({"data": {"mirorr": "x"}}, "data.mirorr", "mirror"),  # unknown key
         ({"trainig": {}}, "trainig", "run_name"),
         ({"stages": {"galery": True}}, "stages.galery", "gallery"),
+        ({"simulation": {"render": {"dtype": "float16"}}}, "simulation.render.dtype", "'float32', 'float64'"),
+        ({"simulation": {"render": {"batch_size": 0}}}, "simulation.render.batch_size", "[1, 4096]"),
+        ({"simulation": {"scenes": {"train": {"n_shards": -1, "images_per_shard": 4}}}},
+         "simulation.scenes.train.n_shards", "[0, 100000]"),
+        ({"simulation": {"scenes": {"train": {"n_shards": 1}}}}, "simulation.scenes.train", "images_per_shard"),
+        ({"simulation": {"multipliers": [0.0]}}, "simulation.multipliers.0", "(0, 1000]"),
+        ({"simulation": {"sources": {"split": {"train": 1.5}}}}, "simulation.sources.split.train", "[0, 1]"),
+        ({"simulation": {"sources": {"cuts": {"mag_max": 50}}}}, "simulation.sources.cuts.mag_max", "[10, 30]"),
+        ({"scenes": {"train": {"subhalos": {"profile": "sis"}}}}, "scenes.train.subhalos.profile", "'epl', 'nfw', 'tnfw'"),
+        ({"scenes": {"nfw": {"images_per_set": 0}}}, "scenes.nfw.images_per_set", "[1, 1000]"),
+        ({"scenes": {"train": {"main_lens": {"theta_ee": 1.0}}}}, "scenes.train.main_lens.theta_ee", "theta_e"),
+        ({"stages": {"simulation": "yes"}}, "stages.simulation", "boolean"),
     ],
 )
 def test_bad_values_name_the_key_and_what_is_allowed(bad, key, allowed):

@@ -15,8 +15,8 @@ from subslope.priors import Normal, PriorError, Uniform, UniformInt
 from subslope.scenes import PRESETS, Scene, SceneError, sample_macro, scenes_from_config  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
-FRAGMENT = ROOT / "config" / "_scenes_fragment.yaml"
-SCHEMA_FRAGMENT = ROOT / "src" / "subslope" / "schemas" / "_scenes_fragment.schema.yaml"
+FRAGMENT = ROOT / "config" / "config.yaml"
+SCHEMA_FRAGMENT = ROOT / "src" / "subslope" / "schemas" / "config.schema.yaml"
 
 ALWAYS = {
     "z_lens", "z_source", "src_x", "src_y", "src_rotation", "lens_x", "lens_y", "theta_e",

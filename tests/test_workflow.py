@@ -7,6 +7,7 @@ the SUBSLOPE_DATA_MIRROR environment variable.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -72,9 +73,16 @@ def test_bad_config_stops_before_any_job(workdir, data_dir):
     assert not (workdir / "resources").exists() and not (workdir / "results").exists()
 
 
+def _stages(workdir: Path, gallery: bool, simulation: bool) -> str:
+    path = workdir / "config" / f"stages_{int(gallery)}{int(simulation)}.yaml"
+    path.write_text(f"stages:\n  gallery: {str(gallery).lower()}\n  simulation: {str(simulation).lower()}\n")
+    return str(path)
+
+
 @pytest.mark.slow
 def test_real_run_fetch_and_gallery(workdir, data_dir):
-    proc = snakemake(workdir, "--cores", "2", "--config", "run_name=pytest_run", mirror=data_dir)
+    gallery_only = ("--configfile", _stages(workdir, True, False))
+    proc = snakemake(workdir, "--cores", "2", *gallery_only, "--config", "run_name=pytest_run", mirror=data_dir)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     png = workdir / "results" / "figures" / "hst_gallery.png"
     pdf = workdir / "results" / "figures" / "hst_gallery.pdf"
@@ -89,7 +97,7 @@ def test_real_run_fetch_and_gallery(workdir, data_dir):
     assert "loaded 13 cutouts" in log and "SDSSJ0946+1006" in log
     assert (workdir / "logs" / "fetch_data.log").read_text().count("copying from mirror") == 18
     # Up to date afterwards, even with the mirror moved: data are known by checksum.
-    proc = snakemake(workdir, "-n", "--config", "run_name=pytest_run", mirror=workdir / "elsewhere")
+    proc = snakemake(workdir, "-n", *gallery_only, "--config", "run_name=pytest_run", mirror=workdir / "elsewhere")
     assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout + proc.stderr
 
 
@@ -99,3 +107,68 @@ def test_log_stretch_handles_nonpositive_pixels():
     assert vmax == 10.0 and vmin == pytest.approx(10.0 / 1000)
     vmin, vmax = log_stretch_limits(np.zeros((4, 4)))
     assert 0 < vmin < vmax
+
+
+def _job_stats(output: str) -> dict[str, int]:
+    """The 'Job stats' table of a Snakemake run/dry run as {rule: count}."""
+    lines = output.split("Job stats:")[-1].splitlines()
+    stats = {}
+    for line in lines[3:]:
+        parts = line.split()
+        if len(parts) != 2 or not parts[1].isdigit():
+            break
+        if parts[0] != "total":
+            stats[parts[0]] = int(parts[1])
+    return stats
+
+
+def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
+    proc = snakemake(workdir, "-n", "--configfile", _stages(workdir, False, True), mirror=data_dir)
+    assert proc.returncode == 0, proc.stderr
+    stats = _job_stats(proc.stdout)
+    # reduced config: train 2 shards, validation 1, test_epl 1; nfw, tnfw 1 shard x 2 multipliers
+    assert stats["simulate_shard"] == 4 and stats["simulate_cdm_shard"] == 4, stats
+    assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 5, stats
+    for path in ("train/shard_0.h5", "train/shard_1.h5", "validation/shard_0.h5", "test_epl/shard_0.h5",
+                 "nfw/a1/shard_0.h5", "nfw/a4/shard_0.h5", "tnfw/a1/shard_0.h5", "tnfw/a4/shard_0.h5"):
+        assert f"results/simulate_shard/{path}" in proc.stdout, path
+    proc = snakemake(workdir, "-n", "--configfile", _stages(workdir, False, False), mirror=data_dir)
+    assert proc.returncode == 0 and "simulate_shard" not in proc.stdout
+
+
+@pytest.mark.slow
+def test_real_run_tiny_simulation(workdir, data_dir):
+    from subslope import shards, simulate
+
+    tiny = ["--configfile", "config/tiny.yaml"]
+    proc = snakemake(workdir, "--cores", "2", *tiny, mirror=data_dir)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    results = workdir / "results"
+    paths = sorted((results / "simulate_shard").rglob("*.h5"))
+    rel = sorted(str(p.relative_to(results / "simulate_shard")) for p in paths)
+    assert rel == ["nfw/a1/shard_0.h5", "test_epl/shard_0.h5", "tnfw/a1/shard_0.h5", "train/shard_0.h5",
+                   "train/shard_1.h5", "validation/shard_0.h5"]
+    for p in paths:
+        with shards.open_shard(p) as s:
+            assert len(s) in (2, 3) and np.all(np.isfinite(s.images[()]))
+    # the workflow's shard equals the package's (same config, same seed streams)
+    with shards.open_shard(results / "simulate_shard" / "train" / "shard_1.h5") as s:
+        np.testing.assert_array_equal(simulate.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"),
+                                      s.images[2])
+    white = json.loads((results / "compute_whitening" / "whitening.json").read_text())
+    assert white["n_images"] == 6 and white["std"] > 0 and len(white["shards"]) == 2
+    for scene in ("train", "validation", "test_epl", "nfw", "tnfw"):
+        png = results / "figures" / f"scene_examples_{scene}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", scene
+    assert "plotted images" in (workdir / "logs" / "plot_scene_examples" / "train.log").read_text()
+    assert "per image" in (workdir / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
+
+    proc = snakemake(workdir, "-n", *tiny, mirror=data_dir)
+    assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout + proc.stderr
+
+    before = {p: p.stat().st_mtime_ns for p in paths}
+    proc = snakemake(workdir, "--cores", "1", *tiny, "-R", "compute_whitening", mirror=data_dir)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert set(_job_stats(proc.stdout + proc.stderr)) <= {"compute_whitening", "all"}
+    assert _job_stats(proc.stdout + proc.stderr)["compute_whitening"] == 1
+    assert {p: p.stat().st_mtime_ns for p in paths} == before

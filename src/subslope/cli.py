@@ -8,6 +8,12 @@ validate-config PATH
 fetch-data --mirror DIR --dest DIR [--allow-download]
     Materialise the checksummed data files under DIR (as the workflow's fetch_data rule).
 
+simulate --config C --scene S --shard K --out PATH [--multiplier A] [--overwrite]
+    Simulate one shard of images (as the workflow's simulate_shard rule).
+preview --config C --scene S [--n 8] --out FIG.png
+    Simulate a few images of a scene (in a temporary shard) and plot them with their
+    arc masks, to look at a scene before running the workflow.
+
 Later stages add their sub-commands in :func:`build_parser`.
 """
 
@@ -52,6 +58,64 @@ def _fetch_data(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_config(path):
+    from subslope.config import ConfigError, load
+
+    try:
+        return load(path)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from subslope.shards import ShardError
+    from subslope.simulate import simulate_shard
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    config = _load_config(args.config)
+    if config is None:
+        return 1
+    try:
+        path = simulate_shard(config, args.scene, args.shard, args.out, multiplier=args.multiplier,
+                              progress=not args.quiet, overwrite=args.overwrite)
+    except (FileExistsError, ShardError, ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {path}", file=sys.stderr)
+    return 0
+
+
+def _preview(args: argparse.Namespace) -> int:
+    import copy
+    import math
+    import tempfile
+
+    from subslope.plotting import plot_scene_examples_from_shard
+    from subslope.simulate import resolved_scene, scene_multipliers, simulate_shard
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    config = _load_config(args.config)
+    if config is None:
+        return 1
+    try:
+        scene, _ = resolved_scene(config, args.scene)
+        k = scene.images_per_set
+        cfg = copy.deepcopy(config)
+        cfg["simulation"]["scenes"][args.scene] = {"n_shards": 1, "images_per_shard": k * math.ceil(args.n / k)}
+        mults = scene_multipliers(cfg, scene)
+        multiplier = None if mults is None else (args.multiplier if args.multiplier is not None else (
+            1.0 if 1.0 in mults else mults[0]))
+        with tempfile.TemporaryDirectory() as tmp:
+            shard = simulate_shard(cfg, args.scene, 0, f"{tmp}/preview.h5", multiplier=multiplier, progress=True)
+            plot_scene_examples_from_shard(shard, [args.out], run_name=f"{config['run_name']} (preview)", n=args.n)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="subslope",
@@ -73,6 +137,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="download files missing from the mirror from their public URLs",
     )
     p.set_defaults(func=_fetch_data)
+
+    p = commands.add_parser("simulate", help="simulate one shard of images")
+    p.add_argument("--config", required=True, help="workflow config file")
+    p.add_argument("--scene", required=True, help="scene name (a key of simulation.scenes)")
+    p.add_argument("--shard", required=True, type=int, help="shard index (0 .. n_shards - 1)")
+    p.add_argument("--out", required=True, help="output HDF5 file (must not exist)")
+    p.add_argument("--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_simulate)
+
+    p = commands.add_parser("preview", help="plot a few simulated images of a scene")
+    p.add_argument("--config", required=True, help="workflow config file")
+    p.add_argument("--scene", required=True, help="scene name")
+    p.add_argument("--n", type=int, default=8, help="number of images (default 8)")
+    p.add_argument("--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)")
+    p.add_argument("--out", required=True, help="figure file (.png, .pdf)")
+    p.set_defaults(func=_preview)
     return parser
 
 

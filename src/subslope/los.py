@@ -24,7 +24,7 @@ internally and every conversion is done at the call site).
 Caching: the per-slice mass-function integral and CDF depend only on the slice
 redshift and the mass range, not on the lens, so they are cached per
 (slice grid, mass range, grid size). Expected counts per system are not cached:
-they cost ~1 ms (see ``docs/_simulation_los.md``).
+they cost ~1 ms (see ``docs/simulation.md``).
 """
 
 from __future__ import annotations
@@ -52,6 +52,8 @@ __all__ = [
     "expected_counts",
     "sample_los",
     "sample_los_batch",
+    "LosPopulation",
+    "los_profiles",
 ]
 
 ARCSEC = math.pi / 648000.0  # radians per arcsec
@@ -613,3 +615,85 @@ def sample_los_batch(
         return np.concatenate([getattr(p, name) for p in parts])
 
     return LosBatch(z=cat("z"), x=cat("x"), y=cat("y"), m200=cat("m200"), counts=counts)
+
+
+# --------------------------------------------------------------------------------------
+# lens profiles of the sampled halos
+# --------------------------------------------------------------------------------------
+def _group_planes(z: np.ndarray, z_source_halo: np.ndarray):
+    """Indices of the halos sharing each distinct (plane z, system z_source) pair."""
+    if z.size == 0:
+        return []
+    keys = np.stack([z, z_source_halo], axis=1)
+    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
+    order = np.argsort(inverse.ravel(), kind="stable")
+    bounds = np.searchsorted(inverse.ravel()[order], np.arange(uniq.shape[0] + 1))
+    return [(float(uniq[k, 0]), float(uniq[k, 1]), order[bounds[k]:bounds[k + 1]]) for k in range(uniq.shape[0])]
+
+
+def los_profiles(batch: LosBatch, scene, macro: dict, rng: np.random.Generator, *, cosmo=None) -> LosPopulation:
+    """Attach lens-profile parameters to sampled LoS halos (a rendering-ready population).
+
+    Parameters
+    ----------
+    batch : LosBatch
+        Halos of ``B`` systems from :func:`sample_los_batch`.
+    scene : subslope.scenes.Scene
+        ``scene.los.profile`` selects the profile; EPL halos take their slope scatter,
+        bounds and ellipticity priors from ``scene.subhalos`` ("as the subhalos"), NFW
+        halos the concentration scatter of ``scene.concentration``.
+    macro : dict
+        Per-system arrays of length ``B``: ``z_source``; ``gamma_sub`` (EPL: the
+        system's label γ); ``c_multiplier`` (NFW with ``concentration.apply_to_los``).
+    rng : numpy.random.Generator
+        Draw order: EPL γ_i, e1, e2; NFW the c200 scatter.
+
+    EPL: γ_i ~ N(γ, f·γ) truncated to the γ_i bounds (f = ``gamma_scatter``), amplitude
+    θ_E^(γ_i−1) = :func:`subslope.cosmology.epl_amp_from_m200` (M200, γ_i, z_halo,
+    z_source): lens-plane units of the halo's own plane. NFW: c200 = c_DM14(M200, z_halo)
+    · 10^N(0, scatter_dex) (× the multiplier a only if ``apply_to_los``), then
+    ``(R_s, α_Rs)`` from :func:`subslope.cosmology.nfw_params_from_m200_c` at (z_halo,
+    z_source). Conversions are grouped by (plane, z_source) so that the distances are
+    evaluated at scalar redshifts (cached).
+    """
+    from subslope import concentration as _conc
+    from subslope import cosmology as _cosmology
+    from subslope.subhalos import sample_subhalo_gammas
+
+    counts = np.asarray(batch.counts, dtype=np.int64)
+    n_sys = counts.size
+    z_source = np.broadcast_to(np.asarray(macro["z_source"], dtype=np.float64), (n_sys,))
+    sys = np.repeat(np.arange(n_sys), counts)
+    n = int(counts.sum())
+    profile = scene.los.profile
+    out = dict(profile=profile, counts=counts, z=np.asarray(batch.z, np.float64),
+               x=np.asarray(batch.x, np.float64), y=np.asarray(batch.y, np.float64),
+               m200=np.asarray(batch.m200, np.float64))
+    groups = _group_planes(out["z"], z_source[sys])
+    if profile == "epl":
+        if "gamma_sub" not in macro:
+            raise ValueError("macro has no 'gamma_sub' (label γ) but the scene's LoS halos are EPL")
+        spec = scene.subhalos
+        gamma_sys = np.broadcast_to(np.asarray(macro["gamma_sub"], dtype=np.float64), (n_sys,))
+        gamma = sample_subhalo_gammas(gamma_sys, counts, rng, spec.gamma_scatter, spec.gamma_bounds)
+        e1, e2 = spec.e1.sample(rng, n), spec.e2.sample(rng, n)
+        amp = np.empty(n)
+        for z_h, z_s, idx in groups:
+            amp[idx] = _cosmology.epl_amp_from_m200(out["m200"][idx], gamma[idx], z_h, z_s, cosmo)
+        out.update(amp=amp, gamma=gamma, e1=e1, e2=e2)
+    elif profile == "nfw":
+        conc = scene.concentration
+        mult = np.ones(n_sys)
+        if conc.apply_to_los and "c_multiplier" in macro:
+            mult = np.broadcast_to(np.asarray(macro["c_multiplier"], dtype=np.float64), (n_sys,))
+        c200 = (
+            mult[sys] * _conc.sample_c200(out["m200"], out["z"], rng, 1.0, conc.scatter_dex)
+            if n else np.zeros(0)
+        )
+        r_s, alpha = np.empty(n), np.empty(n)
+        for z_h, z_s, idx in groups:
+            r_s[idx], alpha[idx] = _cosmology.nfw_params_from_m200_c(out["m200"][idx], c200[idx], z_h, z_s, cosmo)
+        out.update(c200=c200, r_s=r_s, alpha_rs=alpha)
+    else:  # pragma: no cover - Scene validates the profile
+        raise ValueError(f"scene.los.profile = {profile!r} must be 'epl' or 'nfw'")
+    return LosPopulation(**out)

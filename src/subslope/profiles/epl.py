@@ -57,6 +57,8 @@ __all__ = [
     "amp_to_theta_e",
     "epl_convergence",
     "epl_deflection",
+    "epl_deflection_and_convergence",
+    "series_coefficients",
     "epl_potential",
     "epl_convergence_theta_e",
     "epl_deflection_theta_e",
@@ -160,7 +162,7 @@ def epl_convergence(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, r_min: float = 
     return pref * torch.pow(R2, -0.5 * t)
 
 
-def _series_coefficients(gamma: Tensor, n_terms: int) -> list[Tensor]:
+def series_coefficients(gamma: Tensor, n_terms: int) -> list[Tensor]:
     """Coefficients a_0..a_{n-1} of 2F1(1, t/2; 2 - t/2; u) = sum a_n u^n (a_0 = 1)."""
     t = gamma - 1
     coeffs = [torch.ones_like(t)]
@@ -169,15 +171,18 @@ def _series_coefficients(gamma: Tensor, n_terms: int) -> list[Tensor]:
     return coeffs
 
 
-def epl_deflection(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N_TERMS_DEFAULT,
-                   r_min: float = R_MIN, validate: bool = True) -> tuple[Tensor, Tensor]:
-    r"""EPL deflection (alpha_x, alpha_y) in arcsec (Tessore & Metcalf 2015, eq. 13/29).
+def epl_deflection_and_convergence(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *,
+                                   n_terms: int = N_TERMS_DEFAULT, r_min: float = R_MIN,
+                                   validate: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+    r"""EPL deflection and convergence ``(alpha_x, alpha_y, kappa)`` sharing one evaluation.
 
+    Deflection (arcsec) from Tessore & Metcalf (2015, eq. 13/29):
     :math:`\alpha' = \frac{2}{1+q} A q^{t/2} R^{-t} Z\,{}_2F_1(1, t/2; 2-t/2; -f Z^2/R^2)`
     in the profile frame (Z = q x' + i y', t = gamma - 1, f = (1-q)/(1+q)), rotated
-    back to the sky. Arguments as :func:`epl_convergence`; ``n_terms`` is the number of
-    hypergeometric-series terms kept (relative truncation error <= e**n_terms/(1-e)).
-    For a round profile alpha = A r^(2-gamma) r_hat.
+    back to the sky; kappa as :func:`epl_convergence`. Arguments as
+    :func:`epl_convergence`; ``n_terms`` is the number of hypergeometric-series terms
+    kept (relative truncation error <= e**n_terms/(1-e)). The convergence costs one
+    extra multiply, which the renderer uses for the negative mass sheet.
     """
     x = _ref(x)
     amp, gamma, e1, e2, cx, cy = (_as(v, x) for v in (amp, gamma, e1, e2, cx, cy))
@@ -188,11 +193,12 @@ def epl_deflection(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N
     t = gamma - 1
     f = (1 - q) / (1 + q)
     R2 = torch.clamp(X * X + Y * Y, min=r_min * r_min)
+    inv_r2 = 1.0 / R2
     # u = -f e^{2i phi}; only Re(u) is needed per pixel, |u|^2 = f^2 is a parameter.
-    ur = (X * X - Y * Y) * ((-f) / R2)
+    ur = (X * X - Y * Y) * ((-f) * inv_r2)
     s2 = 2 * ur
     m = f * f
-    a = _series_coefficients(gamma, n_terms)
+    a = series_coefficients(gamma, n_terms)
     # Goertzel: b_k = a_k + s2 b_{k+1} - m b_{k+2};  p(u) = a_0 - m b_2 + u b_1.
     b1 = torch.zeros_like(ur) + a[-1] if n_terms > 1 else torch.zeros_like(ur)
     b2 = torch.zeros_like(b1)
@@ -200,11 +206,26 @@ def epl_deflection(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N
         b1, b2 = a[k] + s2 * b1 - m * b2, b1
     Fr = 1 + ur * b1 - m * b2
     # Im(u) b1 with Im(u) = -f 2 X Y / R2
-    Fi = (X * Y) * ((-2 * f) / R2) * b1
-    scale = (2 / (1 + q)) * amp * torch.pow(q, 0.5 * t) * torch.pow(R2, -0.5 * t)
+    Fi = (X * Y) * ((-2 * f) * inv_r2) * b1
+    amp_q = amp * torch.pow(q, 0.5 * t)
+    r_pow = torch.pow(R2, -0.5 * t)
+    scale = ((2 / (1 + q)) * amp_q) * r_pow
     ax_f = scale * (X * Fr - Y * Fi)
     ay_f = scale * (X * Fi + Y * Fr)
-    return c * ax_f - s * ay_f, s * ax_f + c * ay_f
+    kappa = ((0.5 * (3 - gamma)) * amp_q) * r_pow
+    return c * ax_f - s * ay_f, s * ax_f + c * ay_f, kappa
+
+
+def epl_deflection(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N_TERMS_DEFAULT,
+                   r_min: float = R_MIN, validate: bool = True) -> tuple[Tensor, Tensor]:
+    """EPL deflection (alpha_x, alpha_y) in arcsec (Tessore & Metcalf 2015, eq. 13/29).
+
+    See :func:`epl_deflection_and_convergence`. For a round profile
+    alpha = A r^(2-gamma) r_hat.
+    """
+    ax, ay, _ = epl_deflection_and_convergence(x, y, amp, gamma, e1, e2, cx, cy,
+                                               n_terms=n_terms, r_min=r_min, validate=validate)
+    return ax, ay
 
 
 def epl_potential(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N_TERMS_DEFAULT,

@@ -1,0 +1,429 @@
+"""Training of the ratio estimator: resumable loop, checkpoints and the ``model.pt`` artifact.
+
+Objective: the NRE loss of :mod:`subslope.nre.loss` on batches streamed by
+:mod:`subslope.nre.data`, optimised with AdamW; ``ReduceLROnPlateau`` (×0.1 after
+``lr_patience`` stagnant epochs, ``lr_cooldown`` epochs of cool-down) on the validation
+loss; training stops when the validation loss has not improved on its best value by
+more than ``min_delta`` for ``early_stop_patience`` consecutive epochs, or at
+``max_epochs`` (SCIENCE.md §7).
+
+Checkpoints (``ckpt_dir``, kept outside the workflow's declared outputs):
+
+- ``last.pt`` — written atomically (temporary file + ``os.replace``) at the end of every
+  epoch and every ``checkpoint_every`` optimiser steps: model, optimiser, scheduler and
+  grad-scaler states, torch/numpy/python RNG states, the position in the data order
+  (epoch, batch within the epoch, global step), early-stopping state, running sums of
+  the current epoch and the history of finished epochs.
+- ``best.pt`` — the weights with the lowest validation loss so far.
+
+Calling :func:`train` again with the same ``ckpt_dir`` resumes from ``last.pt``: the data
+loader restarts at the next batch of the interrupted epoch, so with ``deterministic:
+true`` on CPU a resumed run ends with the same weights as an uninterrupted one. Keys in
+:data:`RESUME_SAFE_KEYS` may change between the interrupted and the resumed call; any
+other change of the training section raises ``ValueError`` (delete ``ckpt_dir`` to start
+afresh).
+
+``out_dir/model.pt`` (written at the end, from ``best.pt``) holds the weights, the model
+card, the whitening statistics, the γ normalisation, the resolved training section and
+its hash, and the training log; :func:`load_estimator` rebuilds the model from it.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import hashlib
+import json
+import logging
+import math
+import os
+import random
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from .data import ShardBatches, make_loader, read_labels
+from .loss import NRELoss
+from .models import RatioEstimator, build_model, model_card
+from .preprocess import read_whitening
+
+__all__ = ["TRAINING_DEFAULTS", "RESUME_SAFE_KEYS", "resolve_config", "config_hash", "pick_device", "train", "load_estimator", "evaluate"]
+
+log = logging.getLogger(__name__)
+
+#: Keys of the ``training:`` config section and their defaults.
+TRAINING_DEFAULTS: dict[str, Any] = {
+    "arch": {"preset": "reduced"},  # models.build_model dict
+    "batch_size": 256,
+    "val_batch_size": None,  # None: batch_size
+    "lr": 1.0e-3,
+    "weight_decay": 1.0e-2,
+    "lr_factor": 0.1,
+    "lr_patience": 3,
+    "lr_cooldown": 2,
+    "max_epochs": 30,
+    "min_delta": 1.0e-3,
+    "early_stop_patience": 5,
+    "bnre_lambda": 0.0,
+    "negatives": "roll",  # or "derangement"
+    "seed": 0,
+    "block_size": 128,
+    "shuffle_window": 1,
+    "num_workers": 0,
+    "checkpoint_every": 1000,  # optimiser steps; 0: only at the end of epochs
+    "amp": "auto",  # CUDA only: auto (bf16 if supported, else fp16), bf16, fp16, off
+    "deterministic": False,
+    "max_steps": None,  # stop (after a checkpoint) once this many steps are done in total
+    "progress": True,
+    "pixel_scale": 0.04,
+    "mask_factor": 1.5,
+}
+
+#: Keys that may differ between an interrupted run and its resumption.
+RESUME_SAFE_KEYS = frozenset({"max_epochs", "early_stop_patience", "num_workers", "checkpoint_every", "max_steps", "progress", "val_batch_size"})
+
+LOG_COLUMNS = ("epoch", "train_loss", "val_loss", "lr", "seconds", "images_per_s")
+
+
+def resolve_config(config: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The training section with defaults filled in; unknown keys raise ``ValueError``."""
+    cfg = copy.deepcopy(TRAINING_DEFAULTS)
+    config = dict(config or {})
+    unknown = set(config) - set(cfg)
+    if unknown:
+        raise ValueError(f"training: unknown key(s) {sorted(unknown)}; allowed: {sorted(cfg)}")
+    cfg.update(copy.deepcopy(config))
+    for key in ("batch_size", "max_epochs", "lr_patience", "lr_cooldown", "early_stop_patience", "block_size", "shuffle_window"):
+        v = cfg[key]
+        low = 0 if key in ("lr_patience", "lr_cooldown") else 1
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise ValueError(f"training.{key} must be an integer >= {low}, got {v!r}")
+    if cfg["batch_size"] < 2:
+        raise ValueError(f"training.batch_size must be >= 2 (negatives are formed within a batch), got {cfg['batch_size']}")
+    if cfg["amp"] not in ("auto", "bf16", "fp16", "off"):
+        raise ValueError(f"training.amp must be one of auto, bf16, fp16, off; got {cfg['amp']!r}")
+    if not (cfg["lr"] > 0 and cfg["weight_decay"] >= 0 and 0 < cfg["lr_factor"] < 1 and cfg["min_delta"] >= 0):
+        raise ValueError("training: need lr > 0, weight_decay >= 0, 0 < lr_factor < 1, min_delta >= 0; got "
+                         f"lr={cfg['lr']!r}, weight_decay={cfg['weight_decay']!r}, lr_factor={cfg['lr_factor']!r}, min_delta={cfg['min_delta']!r}")
+    return cfg
+
+
+def config_hash(cfg: Mapping[str, Any]) -> str:
+    """SHA-256 (16 hex digits) of the training section without the resume-safe keys."""
+    core = {k: v for k, v in cfg.items() if k not in RESUME_SAFE_KEYS}
+    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def pick_device(device=None) -> torch.device:
+    """``device`` if given, else CUDA when available, else CPU."""
+    if device is not None:
+        return torch.device(device)
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _amp_dtype(cfg, device: torch.device) -> torch.dtype | None:
+    if device.type != "cuda" or cfg["amp"] == "off":
+        return None
+    if cfg["amp"] == "bf16" or (cfg["amp"] == "auto" and torch.cuda.is_bf16_supported()):
+        return torch.bfloat16
+    return torch.float16
+
+
+# -- RNG state (stored as plain types so torch.load(weights_only=True) can read it) ----
+def _rng_state() -> dict[str, Any]:
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    py = random.getstate()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(cached)],
+        "python": [py[0], list(py[1]), py[2]],
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: Mapping[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    py = state["python"]
+    random.setstate((py[0], tuple(py[1]), py[2]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _atomic_save(obj, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _write_log(history: Sequence[Mapping[str, Any]], path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=LOG_COLUMNS)
+        w.writeheader()
+        for row in history:
+            w.writerow({k: row[k] for k in LOG_COLUMNS})
+    os.replace(tmp, path)
+
+
+@torch.no_grad()
+def evaluate(model: RatioEstimator, dataset: ShardBatches, loss_fn: NRELoss, device: torch.device, *, num_workers: int = 0, amp_dtype=None) -> float:
+    """Mean NRE loss over a dataset (eval mode, file order, roll negatives)."""
+    was_training = model.training
+    model.eval()
+    total, count = 0.0, 0
+    for batch in make_loader(dataset, num_workers=num_workers, pin_memory=device.type == "cuda"):
+        n = batch["x"].shape[0]
+        if n < 2:
+            continue
+        x, g = batch["x"].to(device, non_blocking=True), batch["gamma"].to(device, non_blocking=True)
+        ctx = torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext()
+        with ctx:
+            loss = loss_fn(g, x)
+        total += float(loss) * n
+        count += n
+    model.train(was_training)
+    if count == 0:
+        raise ValueError(f"validation shards {dataset.paths} give no batch of at least 2 images")
+    return total / count
+
+
+def train(
+    config: Mapping[str, Any] | None,
+    train_shards: Sequence,
+    val_shards: Sequence,
+    whitening,
+    out_dir,
+    ckpt_dir,
+    *,
+    device=None,
+) -> dict[str, Any]:
+    """Train (or resume training) the ratio estimator and write ``out_dir/model.pt``.
+
+    Parameters
+    ----------
+    config: the ``training:`` section (:data:`TRAINING_DEFAULTS` fills missing keys).
+    train_shards, val_shards: HDF5 shard paths.
+    whitening: ``(mean, std)``, a mapping or the whitening JSON path.
+    out_dir: receives ``model.pt`` and ``training_log.csv``.
+    ckpt_dir: checkpoints (``last.pt``, ``best.pt``); resumed from when present.
+    device: torch device; default CUDA if available, else CPU.
+
+    Returns a summary dict: ``finished`` (False when stopped by ``max_steps``), ``model``
+    (path of ``model.pt`` or None), ``epochs``, ``step``, ``best_val_loss``, ``stop_reason``.
+    """
+    cfg = resolve_config(config)
+    chash = config_hash(cfg)
+    device = pick_device(device)
+    whitening = read_whitening(whitening)
+    out_dir, ckpt_dir = Path(out_dir), Path(ckpt_dir)
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    last_path, best_path = ckpt_dir / "last.pt", ckpt_dir / "best.pt"
+    amp_dtype = _amp_dtype(cfg, device)
+
+    prev_det = torch.are_deterministic_algorithms_enabled()
+    prev_bench = torch.backends.cudnn.benchmark
+    if cfg["deterministic"]:
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True)
+        torch.backends.cudnn.benchmark = False
+    elif device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+    try:
+        return _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, last_path, best_path, device, amp_dtype)
+    finally:
+        torch.use_deterministic_algorithms(prev_det)
+        torch.backends.cudnn.benchmark = prev_bench
+
+
+def _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, last_path, best_path, device, amp_dtype):
+    labels = read_labels(train_shards)
+    gamma_mean, gamma_std = float(labels.mean()), float(labels.std())
+    if not gamma_std > 0:
+        raise ValueError(f"training labels params/gamma_sub have zero spread (all {gamma_mean}); need varied γ")
+
+    seed = int(cfg["seed"])
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+    random.seed(seed)
+    model = build_model(cfg["arch"], gamma_mean=gamma_mean, gamma_std=gamma_std).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg["lr"], weight_decay=cfg["weight_decay"])
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
+        opt, mode="min", factor=cfg["lr_factor"], patience=cfg["lr_patience"], cooldown=cfg["lr_cooldown"],
+        threshold=cfg["min_delta"], threshold_mode="abs",
+    )
+    scaler = torch.amp.GradScaler("cuda") if amp_dtype == torch.float16 else None
+    loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives=cfg["negatives"])
+    val_loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives="roll")  # a fixed function of the weights
+
+    state: dict[str, Any] = {
+        "epoch": 0, "batch_in_epoch": 0, "step": 0, "best_val": math.inf, "bad_epochs": 0,
+        "history": [], "loss_sum": 0.0, "loss_count": 0, "train_seconds": 0.0, "finished": False, "stop_reason": None,
+    }
+    if last_path.exists():
+        ck = torch.load(last_path, map_location=device, weights_only=True)
+        if ck["config_hash"] != chash:
+            changed = sorted(k for k in cfg if k not in RESUME_SAFE_KEYS and ck["config"].get(k) != cfg[k])
+            raise ValueError(f"checkpoint {last_path} was written with a different training config "
+                             f"(changed: {changed}); delete {ckpt_dir} to start afresh")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        if scaler is not None and ck.get("scaler"):
+            scaler.load_state_dict(ck["scaler"])
+        _set_rng_state(ck["rng"])
+        state.update(ck["state"])
+        if state["finished"]:
+            state["stop_reason"] = state.get("stop_reason") or "finished"
+        log.info("resumed from %s at epoch %d, batch %d, step %d", last_path, state["epoch"], state["batch_in_epoch"], state["step"])
+
+    def checkpoint() -> None:
+        _atomic_save({
+            "config": cfg, "config_hash": chash, "model": model.state_dict(), "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(), "scaler": scaler.state_dict() if scaler is not None else None,
+            "rng": _rng_state(), "state": state,
+        }, last_path)
+
+    train_ds = ShardBatches(train_shards, cfg["batch_size"], whitening, shuffle=True, seed=seed, block_size=cfg["block_size"],
+                            window=cfg["shuffle_window"], drop_last=True, pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
+    val_ds = ShardBatches(val_shards, cfg["val_batch_size"] or cfg["batch_size"], whitening, shuffle=False,
+                          pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
+    if len(train_ds) == 0:
+        raise ValueError(f"training shards hold {train_ds.n_images} images, fewer than one batch of {cfg['batch_size']}")
+    pin = device.type == "cuda"
+    max_steps = cfg["max_steps"]
+    if max_steps is not None and state["step"] >= max_steps and not state["finished"]:
+        return _summary(state, None, finished=False)
+
+    model.train()
+    while not state["finished"]:
+        if state["epoch"] >= cfg["max_epochs"]:
+            state["finished"], state["stop_reason"] = True, "max_epochs"
+            break
+        epoch = state["epoch"]
+        train_ds.set_epoch(epoch)
+        loader = make_loader(train_ds, start=state["batch_in_epoch"], num_workers=cfg["num_workers"], pin_memory=pin)
+        t0 = time.perf_counter()
+        bar = tqdm(loader, total=len(train_ds), initial=state["batch_in_epoch"], desc=f"epoch {epoch}",
+                   disable=not cfg["progress"], file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
+        for batch in bar:
+            x = batch["x"].to(device, non_blocking=pin)
+            g = batch["gamma"].to(device, non_blocking=pin)
+            ctx = torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext()
+            with ctx:
+                loss = loss_fn(g, x)
+            opt.zero_grad(set_to_none=True)
+            if scaler is not None:
+                scaler.scale(loss).backward()
+                scaler.step(opt)
+                scaler.update()
+            else:
+                loss.backward()
+                opt.step()
+            lv = float(loss.detach())
+            if not math.isfinite(lv):
+                raise FloatingPointError(f"training loss is {lv} at epoch {epoch}, step {state['step']}")
+            n = x.shape[0]
+            state["loss_sum"] += lv * n
+            state["loss_count"] += n
+            state["step"] += 1
+            state["batch_in_epoch"] += 1
+            if state["step"] % 20 == 0:
+                bar.set_postfix(loss=f"{state['loss_sum'] / state['loss_count']:.4f}", refresh=False)
+            stop = max_steps is not None and state["step"] >= max_steps
+            if stop or (cfg["checkpoint_every"] and state["step"] % cfg["checkpoint_every"] == 0):
+                state["train_seconds"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                checkpoint()
+            if stop:
+                bar.close()
+                log.info("stopped at max_steps=%d (epoch %d, batch %d); call train() again to resume", max_steps, epoch, state["batch_in_epoch"])
+                return _summary(state, None, finished=False)
+        bar.close()
+        state["train_seconds"] += time.perf_counter() - t0
+        tv = time.perf_counter()
+        val = evaluate(model, val_ds, val_loss_fn, device, num_workers=cfg["num_workers"], amp_dtype=amp_dtype)
+        val_seconds = time.perf_counter() - tv
+        lr = opt.param_groups[0]["lr"]
+        sched.step(val)
+        row = {
+            "epoch": epoch, "train_loss": state["loss_sum"] / max(state["loss_count"], 1), "val_loss": val, "lr": lr,
+            "seconds": state["train_seconds"] + val_seconds,
+            "images_per_s": state["loss_count"] / max(state["train_seconds"], 1e-9),
+        }
+        state["history"].append(row)
+        log.info("epoch %d: train %.5f val %.5f lr %.2e (%.1f s, %.0f img/s)", epoch, row["train_loss"], val, lr, row["seconds"], row["images_per_s"])
+        if val < state["best_val"] - cfg["min_delta"]:
+            state["best_val"], state["bad_epochs"] = val, 0
+            _atomic_save({"model": model.state_dict(), "epoch": epoch, "val_loss": val}, best_path)
+        else:
+            state["bad_epochs"] += 1
+            if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
+                state["best_val"] = val
+                _atomic_save({"model": model.state_dict(), "epoch": epoch, "val_loss": val}, best_path)
+        state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
+        if state["bad_epochs"] >= cfg["early_stop_patience"]:
+            state["finished"], state["stop_reason"] = True, "early_stop"
+        elif state["epoch"] >= cfg["max_epochs"]:
+            state["finished"], state["stop_reason"] = True, "max_epochs"
+        checkpoint()
+        _write_log(state["history"], out_dir / "training_log.csv")
+
+    checkpoint()
+    best = torch.load(best_path, map_location="cpu", weights_only=True)
+    model.load_state_dict(best["model"])
+    model_path = out_dir / "model.pt"
+    _atomic_save({
+        "format": "subslope.nre/1",
+        "model": {k: v.cpu() for k, v in model.state_dict().items()},
+        "model_card": model_card(model),
+        "whitening": {"mean": whitening[0], "std": whitening[1]},
+        "gamma_norm": {"mean": float(model.gamma_mean), "std": float(model.gamma_std)},
+        "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
+        "config": cfg,
+        "config_hash": chash,
+        "history": state["history"],
+        "best_epoch": int(best["epoch"]),
+        "best_val_loss": float(best["val_loss"]),
+        "stop_reason": state["stop_reason"],
+        "torch_version": str(torch.__version__),
+    }, model_path)
+    _write_log(state["history"], out_dir / "training_log.csv")
+    return _summary(state, model_path, finished=True)
+
+
+def _summary(state, model_path, *, finished: bool) -> dict[str, Any]:
+    return {
+        "finished": finished, "model": model_path, "epochs": state["epoch"], "step": state["step"],
+        "best_val_loss": state["best_val"], "stop_reason": state.get("stop_reason"),
+    }
+
+
+def load_estimator(path, *, map_location="cpu") -> tuple[RatioEstimator, dict[str, Any]]:
+    """Rebuild the trained estimator from ``model.pt``: ``(model in eval mode, metadata)``.
+
+    ``metadata`` holds every entry of the file but the weights: ``model_card``,
+    ``whitening`` ({mean, std}), ``gamma_norm``, ``preprocess`` ({pixel_scale,
+    mask_factor}), ``config``, ``config_hash``, ``history``, ``best_epoch``, ...
+    """
+    payload = torch.load(path, map_location=map_location, weights_only=True)
+    if payload.get("format") != "subslope.nre/1":
+        raise ValueError(f"{os.fspath(path)!r} is not a subslope estimator file (format {payload.get('format')!r})")
+    card = payload["model_card"]
+    model = build_model(card["arch"], gamma_mean=card["gamma_mean"], gamma_std=card["gamma_std"])
+    model.load_state_dict(payload["model"])
+    model.eval()
+    meta = {k: v for k, v in payload.items() if k != "model"}
+    return model, meta

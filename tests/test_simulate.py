@@ -1,0 +1,174 @@
+"""The forward simulator: shards from the tiny config, reproducibility, rerendering,
+and the LoS profile parameters."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from subslope import concentration, cosmology
+from subslope import config as cfgmod
+from subslope import los as losmod
+from subslope import shards, simulate
+from subslope.scenes import Scene, sample_macro
+from tests.conftest import REPO_ROOT
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory):
+    from tests.conftest import shared_data_dir
+
+    data = shared_data_dir()
+    if not (data / "cosmos").is_dir():
+        pytest.skip(f"no data mirror at {data}")
+    cfg = cfgmod.load(REPO_ROOT / "config" / "tiny.yaml", env=False)
+    cfg["data"]["resources_dir"] = str(data)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def train_shard(config, tmp_path_factory):
+    return simulate.simulate_shard(config, "train", 0, tmp_path_factory.mktemp("sim") / "a.h5", progress=False)
+
+
+def test_shard_layout(train_shard):
+    with shards.open_shard(train_shard) as s:
+        n = len(s)
+        assert s.images.shape == (n, 100, 100) and n == 3
+        for key in ("gamma_sub", "theta_e", "lens_x", "lens_y", "set_index", "n_sub", "delta_los", "noise_seed"):
+            assert s.params[key].shape == (n,), key
+        assert "c_multiplier" not in s.params
+        assert set(s.sources) == {"ident", "z_phot", "pixel_scale"}
+        assert s.subhalos["counts"].sum() == s.params["n_sub"].sum() == s.subhalos["amp"].size
+        assert s.los["counts"].sum() == s.los["z"].size
+        a = s.attrs
+        assert a["scene"] == "train" and a["n_images"] == n and len(a["config_hash"]) == 64
+        assert a["seed_spawn_key"][0] == simulate.scene_id("train") and a["seed_spawn_key"][1] == 0
+        assert a["render_settings"]["dtype"] == "float32" and a["subhalo_profile"] == "epl"
+        assert np.all(np.isfinite(s.images[()]))
+
+
+def test_same_seed_byte_identical_and_shards_differ(config, train_shard, tmp_path):
+    again = simulate.simulate_shard(config, "train", 0, tmp_path / "b.h5", progress=False)
+    assert shards.file_sha256(again) == shards.file_sha256(train_shard)
+    other = simulate.simulate_shard(config, "train", 1, tmp_path / "c.h5", progress=False)
+    with shards.open_shard(train_shard) as a, shards.open_shard(other) as b:
+        assert not np.array_equal(a.images[()], b.images[()])
+        assert not np.array_equal(a.params["theta_e"], b.params["theta_e"])
+        assert a.attrs["config_hash"] == b.attrs["config_hash"]
+
+
+def test_refuses_overwrite(config, train_shard):
+    before = shards.file_sha256(train_shard)
+    with pytest.raises(FileExistsError, match=str(train_shard.name)):
+        simulate.simulate_shard(config, "train", 0, train_shard, progress=False)
+    assert shards.file_sha256(train_shard) == before
+
+
+def test_rerender_bit_for_bit(config, train_shard):
+    with shards.open_shard(train_shard) as s:
+        stored = s.images[()]
+        seeds = s.params["noise_seed"]
+    for i in range(stored.shape[0]):
+        np.testing.assert_array_equal(simulate.rerender(train_shard, i), stored[i])
+    # noise-free: the same clean image as the simulator's own noise-free path
+    ss = simulate.shard_seed_sequence(config["seed"], "train", 0)
+    clean = simulate.simulate_images(config, "train", 3, ss, noise=False)
+    np.testing.assert_array_equal(clean["params"]["noise_seed"], seeds)
+    for i in range(3):
+        np.testing.assert_array_equal(simulate.rerender(train_shard, i, noise=False), clean["images"][i])
+    assert not np.array_equal(clean["images"][0], stored[0])
+
+
+def test_images_do_not_depend_on_batch_size(config, train_shard):
+    cfg = copy.deepcopy(config)
+    cfg["simulation"]["render"]["batch_size"] = 3
+    ss = simulate.shard_seed_sequence(cfg["seed"], "train", 0)
+    out = simulate.simulate_images(cfg, "train", 3, ss)
+    with shards.open_shard(train_shard) as s:
+        np.testing.assert_array_equal(out["images"], s.images[()])
+
+
+@pytest.mark.parametrize("scene", ["nfw", "tnfw"])
+def test_cdm_shards(config, scene, tmp_path):
+    with pytest.raises(ValueError, match="multiplier"):
+        simulate.simulate_shard(config, scene, 0, tmp_path / "x.h5", progress=False)
+    path = simulate.simulate_shard(config, scene, 0, tmp_path / "s.h5", multiplier=1.0, progress=False)
+    with shards.open_shard(path) as s:
+        assert "gamma_sub" not in s.params and np.all(s.params["c_multiplier"] == 1.0)
+        assert s.attrs["subhalo_profile"] == scene and s.attrs["los_profile"] == "nfw"
+        assert ("r_t" in s.subhalos) == (scene == "tnfw")
+        assert "c200" in s.los and "amp" not in s.los
+        assert s.attrs["multiplier"] == 1.0 and s.attrs["seed_spawn_key"][2] == 0
+    np.testing.assert_array_equal(simulate.rerender(path, 1), shards.open_shard(path).images[1])
+
+
+def test_shard_jobs_and_paths(config):
+    full = cfgmod.validate({})
+    jobs = simulate.shard_jobs(full)
+    per_scene = {}
+    for j in jobs:
+        per_scene[j["scene"]] = per_scene.get(j["scene"], 0) + 1
+    assert per_scene == {"train": 2, "validation": 1, "test_epl": 1, "nfw": 2, "tnfw": 2}
+    assert simulate.shard_path("nfw", 3, 0.5) == "results/simulate_shard/nfw/a0.5/shard_3.h5"
+    assert simulate.shard_path("train", 1) == "results/simulate_shard/train/shard_1.h5"
+    bad = cfgmod.validate({"simulation": {"scenes": {"test_epl": {"n_shards": 1, "images_per_shard": 10}}}})
+    with pytest.raises(cfgmod.ConfigError, match="simulation.scenes.test_epl.images_per_shard"):
+        simulate.shard_jobs(bad)
+
+
+def test_seed_streams_are_distinct():
+    a = simulate.shard_seed_sequence(1, "train", 0).generate_state(4)
+    assert not np.array_equal(a, simulate.shard_seed_sequence(1, "train", 1).generate_state(4))
+    assert not np.array_equal(a, simulate.shard_seed_sequence(1, "validation", 0).generate_state(4))
+    assert not np.array_equal(a, simulate.shard_seed_sequence(2, "train", 0).generate_state(4))
+    assert simulate.scene_id("train") == simulate.scene_id("train") < 2**64
+
+
+# ---------------------------------------------------------------------------- LoS profiles
+def _los_draw(scene, n, rng, multiplier=None):
+    macro = sample_macro(scene, n, rng, multiplier=multiplier)
+    macro["delta_los"] = np.full(n, 2.0)
+    batch = losmod.sample_los_batch(macro["z_lens"], macro["z_source"], macro["theta_e"], macro["gamma_ml"],
+                                    macro["delta_los"], rng)
+    return macro, batch
+
+
+def test_los_epl_profiles(rng):
+    scene = Scene.from_config("train", {"subhalos": {"gamma": {"dist": "fixed", "value": 1.2}}})
+    macro, batch = _los_draw(scene, 40, rng)
+    pop = losmod.los_profiles(batch, scene, macro, rng)
+    assert pop.profile == "epl" and pop.counts.sum() > 100
+    assert np.all((pop.gamma >= 1.01) & (pop.gamma <= 2.99)) and pop.gamma.min() < 1.1
+    # truncated normal N(1.2, 0.12) on [1.01, 2.99]
+    a = (1.01 - 1.2) / 0.12
+    ks = stats.kstest(pop.gamma, stats.truncnorm(a, (2.99 - 1.2) / 0.12, loc=1.2, scale=0.12).cdf)
+    assert ks.pvalue > 1e-3
+    sys = np.repeat(np.arange(40), pop.counts)
+    for k in np.flatnonzero(pop.counts)[:3]:
+        j = np.flatnonzero(sys == k)[0]
+        expect = cosmology.epl_amp_from_m200(pop.m200[j], pop.gamma[j], pop.z[j], macro["z_source"][k])
+        assert pop.amp[j] == pytest.approx(float(expect), rel=1e-12)
+    assert np.all(np.abs(pop.e1) <= 0.2) and pop.c200 is None
+    with pytest.raises(ValueError, match="gamma_sub"):
+        losmod.los_profiles(batch, scene, {"z_source": macro["z_source"]}, rng)
+
+
+@pytest.mark.parametrize("apply_to_los", [False, True])
+def test_los_nfw_concentrations(rng, apply_to_los):
+    scene = Scene.from_config("nfw", {"concentration": {"apply_to_los": apply_to_los}})
+    macro, batch = _los_draw(scene, 39, rng, multiplier=4.0)
+    pop = losmod.los_profiles(batch, scene, macro, rng)
+    assert pop.profile == "nfw" and pop.amp is None and pop.counts.sum() > 100
+    ratio = np.log10(pop.c200 / concentration.dutton_maccio_c200(pop.m200, pop.z))
+    shift = np.log10(4.0) if apply_to_los else 0.0
+    assert np.mean(ratio) - shift == pytest.approx(0.0, abs=0.03)
+    assert np.std(ratio) == pytest.approx(0.1, rel=0.2)
+    sys = np.repeat(np.arange(39), pop.counts)
+    j = int(np.flatnonzero(pop.counts > 0)[0])
+    i = np.flatnonzero(sys == j)[0]
+    r_s, alpha = cosmology.nfw_params_from_m200_c(pop.m200[i], pop.c200[i], pop.z[i], macro["z_source"][j])
+    assert pop.r_s[i] == pytest.approx(float(r_s), rel=1e-12) and pop.alpha_rs[i] == pytest.approx(float(alpha), rel=1e-12)

@@ -1,0 +1,81 @@
+# Stage: simulation. Shards of simulated images per scene (and per concentration
+# multiplier for the CDM scenes), the whitening statistics of the training shards and
+# one figure of example images per scene. Shards are valuable (hours of compute at
+# campaign scale): never temp(). Which shards exist comes from
+# subslope.simulate.shard_jobs(config) (counts in config["simulation"]["scenes"]).
+
+
+rule simulate_shard:
+    input:
+        psf=rules.fetch_data.output.psf,
+        cosmos=rules.fetch_data.output.cosmos,
+    output:
+        h5="results/simulate_shard/{scene}/shard_{shard}.h5",
+    wildcard_constraints:
+        scene=SCENE_WILDCARD,
+        shard=r"[0-9]+",
+    params:
+        # Changes of any config value that affects this scene's images rerun the job.
+        config_hash=lambda wildcards: simulation_hash(wildcards.scene),
+    log:
+        "logs/simulate_shard/{scene}/shard_{shard}.log",
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=120,
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/simulate_shard.py"
+
+
+use rule simulate_shard as simulate_cdm_shard with:
+    output:
+        h5="results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5",
+    wildcard_constraints:
+        scene=SCENE_WILDCARD,
+        shard=r"[0-9]+",
+        multiplier=r"[0-9]+(\.[0-9]+)?(e[-+]?[0-9]+)?",
+    log:
+        "logs/simulate_shard/{scene}/a{multiplier}/shard_{shard}.log",
+
+
+rule compute_whitening:
+    input:
+        shards=lambda wildcards: shard_files("train"),
+    output:
+        json="results/compute_whitening/whitening.json",
+    log:
+        "logs/compute_whitening.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/compute_whitening.py"
+
+
+rule plot_scene_examples:
+    input:
+        shard=lambda wildcards: example_shard(wildcards.scene),
+        cosmos=rules.fetch_data.output.cosmos,
+    output:
+        png=report(
+            "results/figures/scene_examples_{scene}.png",
+            caption="../report/scene_examples.rst",
+            category="Simulation",
+        ),
+    wildcard_constraints:
+        scene=SCENE_WILDCARD,
+    params:
+        run_name=config["run_name"],
+        n_examples=8,
+        cosmos=lambda wildcards, input: os.path.dirname(input.cosmos[0]),
+    log:
+        "logs/plot_scene_examples/{scene}.log",
+    threads: 1
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/plot_scene_examples.py"

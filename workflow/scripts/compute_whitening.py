@@ -1,0 +1,18 @@
+"""Snakemake script of rule compute_whitening: pixel mean/std of the training shards."""
+
+import logging
+
+from subslope.whitening import compute_whitening
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    result = compute_whitening(list(snakemake.input.shards), snakemake.output.json)
+    logging.info("mean %.6g, std %.6g over %d images of %d shards",
+                 result["mean"], result["std"], result["n_images"], len(result["shards"]))
+except Exception:
+    logging.exception("compute_whitening failed")
+    raise

@@ -1,0 +1,23 @@
+"""Snakemake script of rule plot_scene_examples: example images of one scene."""
+
+import logging
+
+from subslope.plotting import plot_scene_examples_from_shard
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    shown = plot_scene_examples_from_shard(
+        snakemake.input.shard,
+        [snakemake.output.png],
+        run_name=snakemake.params.run_name,
+        n=snakemake.params.n_examples,
+        cosmos=snakemake.params.cosmos,
+    )
+    logging.info("plotted images %s of %s", shown, snakemake.input.shard)
+except Exception:
+    logging.exception("plot_scene_examples failed")
+    raise

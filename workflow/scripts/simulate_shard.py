@@ -1,0 +1,27 @@
+"""Snakemake script of rules simulate_shard / simulate_cdm_shard: one shard of images."""
+
+import logging
+
+import torch
+
+from subslope.simulate import simulate_shard
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    torch.set_num_threads(snakemake.threads)
+    multiplier = snakemake.wildcards.get("multiplier")
+    simulate_shard(
+        snakemake.config,
+        snakemake.wildcards.scene,
+        int(snakemake.wildcards.shard),
+        snakemake.output.h5,
+        multiplier=None if multiplier is None else float(multiplier),
+        progress=False,
+    )
+except Exception:
+    logging.exception("simulate_shard failed")
+    raise
