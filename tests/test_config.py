@@ -17,8 +17,13 @@ CONFIG = REPO / "config" / "config.yaml"
 
 
 #: Keys of config/config.yaml that deliberately differ from the schema defaults (the
-#: reference values): the 10 bundled COSMOS galaxies need relaxed cuts and a coarser split.
-SHIPPED_DEVIATIONS = {("simulation", "sources", "cuts"), ("simulation", "sources", "split")}
+#: reference values): the 10 bundled COSMOS galaxies need relaxed cuts and a coarser split;
+#: the reduced campaign's sizes, compiled rendering and training settings for a 2-core CPU.
+SHIPPED_DEVIATIONS = {
+    ("simulation", "sources", "cuts"), ("simulation", "sources", "split"), ("simulation", "scenes"),
+    ("simulation", "multipliers"), ("simulation", "render", "compile"), ("training", "batch_size"),
+    ("training", "num_workers"), ("training", "checkpoint_every"),
+}
 
 #: Scene keys without a schema default (their preset differs between scenes; see the
 #: header of the schema): paths relative to $defs.scene.
@@ -54,6 +59,7 @@ def test_shipped_config_is_valid_and_complete():
     assert loaded["cosmology"]["name"] == "Planck18"
     assert loaded["stages"]["gallery"] is True
     assert loaded["stages"]["simulation"] is True
+    assert loaded["training"]["seed"] is None and loaded["calibration"]["seed"] is None
 
 
 def test_tiny_config_is_valid():
@@ -62,7 +68,25 @@ def test_tiny_config_is_valid():
     scenes = scenes_from_config(tiny["scenes"])
     for name, c in counts.items():
         assert c["images_per_shard"] % scenes[name].images_per_set == 0, name
-        assert c["n_shards"] * c["images_per_shard"] <= 8, name
+        assert c["n_shards"] * c["images_per_shard"] <= 16, name
+    assert tiny["training"]["max_epochs"] <= 2 and tiny["inference"]["gamma_grid"]["n"] <= 32
+    assert all(tiny["stages"].values())  # the tiny run exercises the whole DAG
+    per_set = scenes[tiny["calibration"]["stack_scene"]].images_per_set
+    assert max(tiny["calibration"]["n_images"]) <= per_set
+    assert len(tiny["hst"]["combine"]) in tiny["calibration"]["n_images"]
+
+
+def test_shipped_campaign_sections():
+    loaded = cfg.load(CONFIG, env=False)
+    assert 1.0 in loaded["simulation"]["multipliers"]
+    assert loaded["calibration"]["n_images"] == [1, 2, 3, 5, 8, 13]
+    assert loaded["calibration"]["level"] == 0.68
+    assert "SDSSJ0946+1006" in loaded["hst"]["show"] and loaded["hst"]["combine"] is None
+    assert all(loaded["stages"].values())
+    scenes = scenes_from_config(loaded["scenes"])
+    for name, c in loaded["simulation"]["scenes"].items():
+        assert c["images_per_shard"] % scenes[name].images_per_set == 0, name
+    assert max(loaded["calibration"]["n_images"]) <= scenes["test_epl"].images_per_set
 
 
 def test_every_schema_key_is_typed_described_defaulted():
@@ -167,6 +191,17 @@ def test_defaults_fill_partial_sections():
         ({"scenes": {"nfw": {"images_per_set": 0}}}, "scenes.nfw.images_per_set", "[1, 1000]"),
         ({"scenes": {"train": {"main_lens": {"theta_ee": 1.0}}}}, "scenes.train.main_lens.theta_ee", "theta_e"),
         ({"stages": {"simulation": "yes"}}, "stages.simulation", "boolean"),
+        ({"training": {"batch_size": 1}}, "training.batch_size", "[2, 100000]"),
+        ({"training": {"arch": {"preset": "vgg"}}}, "training.arch.preset", "'reduced', 'resnet50'"),
+        ({"training": {"lr": 0.0}}, "training.lr", "(0, 1]"),
+        ({"training": {"optimiser": "sgd"}}, "training.optimiser", "max_epochs"),
+        ({"inference": {"gamma_grid": {"n": 2}}}, "inference.gamma_grid.n", "[3, 100000]"),
+        ({"inference": {"device": "tpu"}}, "inference.device", "'auto', 'cpu', 'cuda'"),
+        ({"calibration": {"level": 1.0}}, "calibration.level", "(0, 1)"),
+        ({"calibration": {"n_images": [0]}}, "calibration.n_images.0", "[1, 1000]"),
+        ({"hst": {"lens_centre": {"method": "fit"}}}, "hst.lens_centre.method", "'light_centroid'"),
+        ({"cdm": {"band": [16, 184]}}, "cdm.band.1", "[0, 100]"),
+        ({"stages": {"training": 1}}, "stages.training", "boolean"),
     ],
 )
 def test_bad_values_name_the_key_and_what_is_allowed(bad, key, allowed):

@@ -330,3 +330,69 @@ def test_against_lenstronomy():
     rel = np.linalg.norm(ours - theirs) / np.linalg.norm(theirs)
     print(f"lenstronomy rel L2 = {rel:.2e}")
     assert rel <= 1e-3
+
+
+# ------------------------------------------------------------------ multi-Sérsic source
+def multi_macro(b=3, seed=0, ncomp=None, kind_over=None):
+    from subslope.scenes import Scene, sample_macro
+
+    over = {"source": {"kind": "multi_sersic", "r_sersic": {"dist": "uniform", "low": 0.1, "high": 0.2},
+                       "n_sersic": {"dist": "uniform", "low": 0.8, "high": 1.5}},
+            "components": {"los": False, "subhalos": False, "lens_light": False}}
+    if ncomp is not None:
+        over["source"]["multi_sersic"] = {"n_components": ncomp}
+    return sample_macro(Scene.from_config("train", over), b, np.random.default_rng(seed))
+
+
+def test_multi_sersic_unlensed_flux_equals_total_magnitude():
+    m = multi_macro(4, seed=3)
+    for k in ("a3", "phi3", "a4", "phi4", "shear_g1", "shear_g2"):
+        m.pop(k)
+    m["theta_e"][:] = 1e-12  # main lens with negligible deflection: the source unlensed
+    m["gamma_ml"][:] = 2.0
+    s = dataclasses.replace(FAST, dtype=torch.float64, npix=160, pixel_scale=0.04, supersample=3)
+    img = R.render(m, PSF, s)
+    flux = img.sum((1, 2)).numpy()
+    np.testing.assert_allclose(flux, magnitude_to_flux(torch.as_tensor(m["src_mag_total"])).numpy(), rtol=2e-3)
+    assert set(m["src_ncomp"]) != {1}
+
+
+def test_multi_sersic_components_off_are_not_evaluated(monkeypatch):
+    import subslope.light.sersic as LS
+
+    calls = []
+    orig = LS.sersic_ellipse_from_magnitude
+
+    def spy(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(LS, "sersic_ellipse_from_magnitude", spy)
+    m = multi_macro(3, seed=1)
+    m["src_ncomp"][:] = [1, 3, 2]
+    for j in range(4):  # the sampled fractions follow the count; rewrite them to match
+        m[f"src_frac_{j}"][:] = [[1, 0.5, 0.6][i] * (j < m["src_ncomp"][i]) if j else [1, 0.5, 0.6][i]
+                                 for i in range(3)]
+    R.reset_stage_counts()
+    R.render(m, PSF, FAST)  # CPU: one image at a time
+    assert R.STAGE_COUNTS["source_multi_sersic"] == 3
+    assert R.STAGE_COUNTS["source_component"] == 1 + 3 + 2 == len(calls)
+    assert R.STAGE_COUNTS["source_sersic"] == 0
+
+
+def test_multi_sersic_one_component_equals_sersic_and_batch_invariance():
+    m = multi_macro(3, seed=2, ncomp=1)
+    single = {k: v for k, v in m.items() if not k.startswith("src_") or k in ("src_x", "src_y", "src_rotation")}
+    single.update(src_mag=m["src_mag_total"], src_r=m["src_r_0"], src_n=m["src_n_0"], src_e1=m["src_e1_0"],
+                  src_e2=m["src_e2_0"])
+    assert torch.equal(R.render(m, PSF, FAST), R.render(single, PSF, FAST))
+    m4 = multi_macro(3, seed=2)
+    full = R.render(m4, PSF, FAST)
+    one = R.render({k: v[1:2] for k, v in m4.items()}, PSF, FAST)
+    assert torch.equal(full[1:2], one)
+    with pytest.raises(ValueError, match="exactly one source"):
+        R.render(m4, PSF, FAST, sources=cosmos_like(3))
+    bad = dict(m4)
+    bad.pop("src_dx_2")
+    with pytest.raises(ValueError, match="src_dx_2"):
+        R.render(bad, PSF, FAST)

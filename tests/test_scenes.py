@@ -206,7 +206,91 @@ def test_config_fragment_matches_presets_and_schema():
     assert list(validator.iter_errors(bad))
     # Every schema default of a scene key equals the train preset value.
     train = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))["scenes"]["train"]
+    def check(props, values, where):
+        for key, entry in props.items():
+            if "properties" in entry:  # nested object (source.multi_sersic): compare its keys
+                check(entry["properties"], values[key], f"{where}.{key}")
+            elif "default" in entry:
+                assert entry["default"] == values[key], f"{where}.{key}"
+
     for section, sub in frag["$defs"]["scene"]["properties"].items():
-        for key, entry in sub.get("properties", {}).items():
-            if "default" in entry:
-                assert entry["default"] == train[section][key], f"{section}.{key}"
+        check(sub.get("properties", {}), train.get(section, {}), section)
+
+
+# ------------------------------------------------------------------ multi-Sérsic source
+MULTI = {"source": {"kind": "multi_sersic"}}
+
+
+def test_multi_sersic_layout_and_priors(rng):
+    from subslope.scenes import MULTI_SERSIC_KEYS, multi_sersic_keys
+
+    s = Scene.from_config("train", MULTI)
+    assert s.source.multi_sersic.max_components == 4
+    m = sample_macro(s, 400, rng)
+    keys = multi_sersic_keys(4)
+    assert set(keys) <= set(m) and len(keys) == 2 + 4 * len(MULTI_SERSIC_KEYS)
+    assert "src_mag" not in m and "src_r" not in m  # the single-Sérsic keys are not emitted
+    for k in keys:
+        assert m[k].shape == (400,) and np.all(np.isfinite(m[k])), k
+    assert m["src_ncomp"].dtype == np.int64 and set(np.unique(m["src_ncomp"])) == {1, 2, 3, 4}
+    frac = np.stack([m[f"src_frac_{j}"] for j in range(4)])
+    np.testing.assert_allclose(frac.sum(0), 1.0, rtol=0, atol=1e-12)
+    for j in range(4):  # slots beyond the count carry zero flux, slots within it positive flux
+        assert np.all((frac[j] > 0) == (j < m["src_ncomp"]))
+    assert np.all(m["src_dx_0"] == 0) and np.all(m["src_dy_0"] == 0)
+    off = np.hypot(m["src_dx_1"], m["src_dy_1"])
+    assert off.min() >= 0.05 - 1e-12 and off.max() <= 0.35 + 1e-12
+    assert m["src_r_1"].min() >= 0.02 and m["src_r_1"].max() <= 0.1
+    assert 20 <= m["src_mag_total"].min() and m["src_mag_total"].max() <= 23
+
+
+def test_multi_sersic_same_seed_and_other_draws_unchanged():
+    s = Scene.from_config("train", MULTI)
+    a = sample_macro(s, 50, np.random.default_rng(5))
+    b = sample_macro(s, 50, np.random.default_rng(5))
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    # the multi-Sérsic draws come last: the other parameters equal the Sérsic-kind draws
+    c = sample_macro(Scene.from_config("train", {"source": {"kind": "sersic"}}), 50, np.random.default_rng(5))
+    for k in ("theta_e", "gamma_ml", "n_sub", "gamma_sub", "lens_x", "delta_los"):
+        assert np.array_equal(a[k], c[k]), k
+    np.testing.assert_array_equal(a["src_mag_total"], c["src_mag"])
+    np.testing.assert_array_equal(a["src_r_0"], c["src_r"])
+
+
+def test_multi_sersic_fixed_count_and_bad_configs():
+    s = Scene.from_config("train", {"source": {"kind": "multi_sersic", "multi_sersic": {"n_components": 1}}})
+    m = sample_macro(s, 5, np.random.default_rng(0))
+    assert np.all(m["src_ncomp"] == 1) and np.all(m["src_frac_0"] == 1) and "src_frac_1" not in m
+    for bad, needle in [
+        ({"n_components": {"dist": "uniform_int", "low": 0, "high": 3}}, "multi_sersic.n_components"),
+        ({"n_components": {"dist": "uniform_int", "low": 1, "high": 9}}, "multi_sersic.n_components"),
+        ({"n_components": {"dist": "uniform", "low": 1, "high": 3}}, "multi_sersic.n_components"),
+        ({"r_sersic": {"dist": "uniform", "low": -0.1, "high": 0.1}}, "multi_sersic.r_sersic"),
+        ({"share": {"dist": "uniform", "low": -1, "high": 1}}, "multi_sersic.share"),
+        ({"clumps": 3}, "multi_sersic.clumps"),
+    ]:
+        with pytest.raises(SceneError) as err:
+            Scene.from_config("train", {"source": {"kind": "multi_sersic", "multi_sersic": bad}})
+        assert needle in str(err.value)
+
+
+def test_schema_accepts_and_rejects_multi_sersic():
+    frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
+    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object",
+              "properties": frag["properties"], "$defs": frag["$defs"]}
+    v = jsonschema.Draft202012Validator(schema)
+
+    def ok(src):
+        return not list(v.iter_errors({"scenes": {"train": {"source": src}}}))
+
+    assert ok({"kind": "multi_sersic"})
+    assert ok({"kind": "multi_sersic", "multi_sersic": {"n_components": 3, "offset": {"dist": "uniform", "low": 0,
+                                                                                      "high": 0.5}}})
+    assert ok({"kind": "multi_sersic", "multi_sersic": {"n_components": {"dist": "uniform_int", "low": 2, "high": 8}}})
+    assert not ok({"kind": "multisersic"})
+    assert not ok({"kind": "multi_sersic", "multi_sersic": {"n_components": 0}})
+    assert not ok({"kind": "multi_sersic", "multi_sersic": {"n_components": {"dist": "uniform_int", "low": 1,
+                                                                             "high": 9}}})
+    assert not ok({"kind": "multi_sersic", "multi_sersic": {"n_components": {"dist": "uniform", "low": 1,
+                                                                             "high": 3}}})
+    assert not ok({"kind": "multi_sersic", "multi_sersic": {"clumps": 2}})

@@ -1,4 +1,6 @@
-"""The Snakemake workflow: lint, dry run, config errors, and a real run of fetch + gallery.
+"""The Snakemake workflow: lint, dry runs (job counts per rule, stage switches, reruns),
+config errors, a real run of fetch + gallery and ONE real run of the whole tiny campaign
+(module-scoped fixture) whose outputs several tests inspect.
 
 Every run happens in a private copy of the workflow under a temporary folder (so tests
 never touch the repository's results/ or lock it), with the data mirror passed through
@@ -50,16 +52,33 @@ def test_lint_clean(workdir):
     assert "Lints for" not in proc.stdout + proc.stderr
 
 
-def test_dry_run_lists_stages(workdir, data_dir):
+def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
+    """config/config.yaml: one job per shard, per evaluated shard and per N, one of the rest."""
+    from subslope import config as cfgmod
+
+    cfg = cfgmod.load(workdir / "config" / "config.yaml", env=False)
     proc = snakemake(workdir, "-n", mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
-    for rule in ("fetch_data", "plot_hst_gallery", "all"):
-        assert rule in proc.stdout
-    off = workdir / "config" / "no_gallery.yaml"
-    off.write_text("stages:\n  gallery: false\n")
+    stats = _job_stats(proc.stdout)
+    sim = cfg["simulation"]["scenes"]
+    n_mult = len(cfg["simulation"]["multipliers"])
+    assert stats["simulate_shard"] == sum(sim[s]["n_shards"] for s in ("train", "validation", "test_epl"))
+    assert stats["simulate_cdm_shard"] == n_mult * (sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"])
+    assert stats["evaluate_profiles"] == sim["validation"]["n_shards"] + sim["test_epl"]["n_shards"]
+    assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
+    assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
+    for rule in ("fetch_data", "plot_hst_gallery", "compute_whitening", "train_estimator", "plot_training_curves",
+                 "summarize_coverage", "measure_cdm_grid", "analyze_hst", "plot_validation", "write_summary", "all"):
+        assert stats[rule] == 1, (rule, stats)
+    assert stats["plot_scene_examples"] == 5
+    assert "results/evaluate_profiles/nfw/a0.5/shard_0.h5" in proc.stdout
+    assert "results/calibrate_threshold/N13.npz" in proc.stdout
+    assert "results/checkpoints" not in proc.stdout  # never a declared output
+    off = _stages(workdir, False, False)
     proc = snakemake(workdir, "-n", "--configfile", str(off), mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     assert "fetch_data" in proc.stdout and "plot_hst_gallery" not in proc.stdout
+    assert "simulate_shard" not in proc.stdout and "train_estimator" not in proc.stdout
 
 
 def test_bad_config_stops_before_any_job(workdir, data_dir):
@@ -73,9 +92,16 @@ def test_bad_config_stops_before_any_job(workdir, data_dir):
     assert not (workdir / "resources").exists() and not (workdir / "results").exists()
 
 
-def _stages(workdir: Path, gallery: bool, simulation: bool) -> str:
-    path = workdir / "config" / f"stages_{int(gallery)}{int(simulation)}.yaml"
-    path.write_text(f"stages:\n  gallery: {str(gallery).lower()}\n  simulation: {str(simulation).lower()}\n")
+STAGES = ("gallery", "simulation", "training", "inference", "calibration", "cdm_grid", "hst", "figures")
+
+
+def _stages(workdir: Path, gallery: bool, simulation: bool, **more: bool) -> str:
+    """A config file switching stages (later stages default to `simulation`'s value)."""
+    flags = {"gallery": gallery, "simulation": simulation}
+    flags.update({s: more.get(s, simulation) for s in STAGES[2:]})
+    name = "stages_" + "".join(str(int(flags[s])) for s in STAGES)
+    path = workdir / "config" / f"{name}.yaml"
+    path.write_text("stages:\n" + "".join(f"  {k}: {str(v).lower()}\n" for k, v in flags.items()))
     return str(path)
 
 
@@ -122,35 +148,103 @@ def _job_stats(output: str) -> dict[str, int]:
     return stats
 
 
+def _sim_only(workdir: Path) -> str:
+    return _stages(workdir, False, True, training=False, inference=False, calibration=False, cdm_grid=False,
+                   hst=False, figures=False)
+
+
 def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
-    proc = snakemake(workdir, "-n", "--configfile", _stages(workdir, False, True), mirror=data_dir)
+    proc = snakemake(workdir, "-n", "--configfile", _sim_only(workdir), mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     stats = _job_stats(proc.stdout)
-    # reduced config: train 2 shards, validation 1, test_epl 1; nfw, tnfw 1 shard x 2 multipliers
-    assert stats["simulate_shard"] == 4 and stats["simulate_cdm_shard"] == 4, stats
+    # reduced config: train 5 shards, validation 1, test_epl 2; nfw, tnfw 1 shard x 3 multipliers
+    assert stats["simulate_shard"] == 8 and stats["simulate_cdm_shard"] == 6, stats
     assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 5, stats
-    for path in ("train/shard_0.h5", "train/shard_1.h5", "validation/shard_0.h5", "test_epl/shard_0.h5",
-                 "nfw/a1/shard_0.h5", "nfw/a4/shard_0.h5", "tnfw/a1/shard_0.h5", "tnfw/a4/shard_0.h5"):
+    assert "train_estimator" not in stats and "evaluate_profiles" not in stats
+    for path in ("train/shard_0.h5", "train/shard_4.h5", "validation/shard_0.h5", "test_epl/shard_1.h5",
+                 "nfw/a0.5/shard_0.h5", "nfw/a1/shard_0.h5", "nfw/a4/shard_0.h5", "tnfw/a4/shard_0.h5"):
         assert f"results/simulate_shard/{path}" in proc.stdout, path
-    proc = snakemake(workdir, "-n", "--configfile", _stages(workdir, False, False), mirror=data_dir)
-    assert proc.returncode == 0 and "simulate_shard" not in proc.stdout
+
+
+#: Rules of each stage after simulation.
+STAGE_RULES = {
+    "training": {"train_estimator"},
+    "inference": {"evaluate_profiles", "evaluate_cdm_profiles"},
+    "calibration": {"calibrate_threshold", "summarize_coverage"},
+    "cdm_grid": {"measure_cdm_grid"},
+    "hst": {"analyze_hst"},
+    "figures": {"plot_training_curves", "plot_validation", "write_summary"},
+}
+
+
+def test_dry_run_tiny_job_counts(workdir, data_dir):
+    proc = snakemake(workdir, "-n", "--configfile", "config/tiny.yaml", mirror=data_dir)
+    assert proc.returncode == 0, proc.stderr
+    stats = _job_stats(proc.stdout)
+    expected = {"simulate_shard": 4, "simulate_cdm_shard": 2,
+                "compute_whitening": 1, "plot_scene_examples": 5, "train_estimator": 1, "plot_training_curves": 1,
+                "evaluate_profiles": 2, "evaluate_cdm_profiles": 2, "calibrate_threshold": 2,
+                "summarize_coverage": 1, "measure_cdm_grid": 1, "analyze_hst": 1, "plot_validation": 1,
+                "write_summary": 1, "all": 1}
+    # fetch_data and the gallery may already have run in this work folder
+    assert {k: v for k, v in stats.items() if k not in ("fetch_data", "plot_hst_gallery")} == expected, stats
+
+
+@pytest.mark.parametrize("off", ["training", "calibration", "cdm_grid"])
+def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
+    """A stage switched off runs none of its rules, nor do the stages that need it."""
+    needs = {"training": {"inference", "calibration", "cdm_grid", "hst", "figures"},
+             "inference": {"calibration", "cdm_grid", "hst"}, "calibration": {"hst"}}
+    flags = workdir / "config" / f"tiny_no_{off}.yaml"
+    flags.write_text(f"stages:\n  {off}: false\n")
+    proc = snakemake(workdir, "-n", "--configfile", "config/tiny.yaml", str(flags), mirror=data_dir)
+    assert proc.returncode == 0, proc.stderr
+    stats = _job_stats(proc.stdout)
+    dead = {off} | needs.get(off, set())
+    for stage, rules in STAGE_RULES.items():
+        if stage in dead:
+            assert not rules & set(stats), (stage, stats)
+        elif stage != "figures" or "calibration" not in dead:
+            assert rules & set(stats), (stage, stats)
+    if off == "cdm_grid":
+        assert stats["analyze_hst"] == 1 and "measure_cdm_grid" not in stats
+    if off == "calibration":  # figures still plot the training curves and write the summary
+        assert stats["write_summary"] == 1 and "plot_validation" not in stats
+
+
+# ---------------------------------------------------------------------------------------
+# the real tiny campaign, run once
+TINY = ("--configfile", "config/tiny.yaml")
+
+FIGURES = ("hst_gallery", "training_curves", "coverage", "fig2_validation", "fig3_stacks",
+           "fig4_concentration_grid", "fig5_hst_profiles", "fig6_hst_combined")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(workdir):
+    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per session."""
+    from tests.conftest import shared_data_dir
+
+    data_dir = shared_data_dir()
+    if not data_dir.is_dir():
+        pytest.skip(f"real data folder not found: {data_dir}")
+    proc = snakemake(workdir, "--cores", "2", *TINY, mirror=data_dir)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return workdir / "results"
 
 
 @pytest.mark.slow
-def test_real_run_tiny_simulation(workdir, data_dir):
+def test_real_run_tiny_simulation(tiny_run, workdir):
     from subslope import shards, simulate
 
-    tiny = ["--configfile", "config/tiny.yaml"]
-    proc = snakemake(workdir, "--cores", "2", *tiny, mirror=data_dir)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    results = workdir / "results"
+    results = tiny_run
     paths = sorted((results / "simulate_shard").rglob("*.h5"))
     rel = sorted(str(p.relative_to(results / "simulate_shard")) for p in paths)
     assert rel == ["nfw/a1/shard_0.h5", "test_epl/shard_0.h5", "tnfw/a1/shard_0.h5", "train/shard_0.h5",
                    "train/shard_1.h5", "validation/shard_0.h5"]
     for p in paths:
         with shards.open_shard(p) as s:
-            assert len(s) in (2, 3) and np.all(np.isfinite(s.images[()]))
+            assert len(s) in (3, 4, 8) and np.all(np.isfinite(s.images[()]))
     # the workflow's shard equals the package's (same config, same seed streams)
     with shards.open_shard(results / "simulate_shard" / "train" / "shard_1.h5") as s:
         np.testing.assert_array_equal(simulate.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"),
@@ -163,12 +257,73 @@ def test_real_run_tiny_simulation(workdir, data_dir):
     assert "plotted images" in (workdir / "logs" / "plot_scene_examples" / "train.log").read_text()
     assert "per image" in (workdir / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
 
-    proc = snakemake(workdir, "-n", *tiny, mirror=data_dir)
+
+@pytest.mark.slow
+def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
+    import h5py
+    import pandas as pd
+
+    from subslope.campaign import SUMMARY_SECTIONS
+    from subslope.nre import load_estimator
+
+    results = tiny_run
+    for stem in FIGURES:
+        png, pdf = results / "figures" / f"{stem}.png", results / "figures" / f"{stem}.pdf"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", stem
+        assert pdf.read_bytes()[:5] == b"%PDF-", stem
+        if stem != "hst_gallery":
+            assert b"run_name=tiny" in pdf.read_bytes() and b"run_name=tiny" in png.read_bytes(), stem
+    model, meta = load_estimator(results / "train_estimator" / "model.pt")
+    assert meta["whitening"]["std"] > 0
+    assert len(pd.read_csv(results / "train_estimator" / "training_log.csv")) >= 1
+    ckpts = list((results / "checkpoints" / "train_estimator").glob("*/last.pt"))
+    assert len(ckpts) == 1  # kept: not a declared output
+    with h5py.File(results / "evaluate_profiles" / "test_epl" / "shard_0.h5") as fh:
+        assert fh["log_ratio"].shape == (8, 19) and np.all(np.isfinite(fh["gamma_true"][()]))
+    with h5py.File(results / "evaluate_profiles" / "nfw" / "a1" / "shard_0.h5") as fh:
+        assert np.all(fh["c_multiplier"][()] == 1.0) and np.all(np.isnan(fh["gamma_true"][()]))
+    for n in (1, 2):
+        assert (results / "calibrate_threshold" / f"N{n}.npz").is_file()
+    thr = json.loads((results / "summarize_coverage" / "thresholds.json").read_text())
+    assert set(thr["tau"]) == {"1", "2"}
+    cal = pd.read_csv(results / "summarize_coverage" / "calibration.csv")
+    assert cal["n_images"].tolist() == [1, 2]
+    grid = pd.read_csv(results / "measure_cdm_grid" / "cdm_grid.csv")
+    assert set(grid["scene"]) == {"nfw", "tnfw"} and set(grid["multiplier"]) == {1.0}
+    hst = pd.read_csv(results / "analyze_hst" / "intervals.csv")
+    assert len(hst) == 14 and hst["system"].iloc[-1] == "combined" and hst["n_images"].iloc[-1] == 2
+    assert np.all(np.abs(hst["lens_x"].iloc[:13]) < 0.4) and np.all(np.abs(hst["lens_y"].iloc[:13]) < 0.4)
+    summary = (results / "summary.md").read_text()
+    for section in SUMMARY_SECTIONS:
+        assert f"## {section}" in summary, section
+    assert "`tiny`" in summary and "config/tiny.yaml" in summary
+    for name in ("hst_result", "cdm_prediction", "coverage", "trend", "stage_runtime"):
+        assert (results / f"{name}.csv").is_file(), name
+    runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
+    assert runtime.loc["simulation", "jobs"] == 7 and runtime.loc["training", "seconds"] > 0
+    assert runtime.loc["inference", "jobs"] == 4
+    assert (workdir / "logs" / "train_estimator.log").read_text().count("training done") == 1
+
+
+@pytest.mark.slow
+def test_real_run_tiny_second_run_does_nothing(tiny_run, workdir, data_dir):
+    proc = snakemake(workdir, "-n", *TINY, mirror=data_dir)
     assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout + proc.stderr
 
-    before = {p: p.stat().st_mtime_ns for p in paths}
-    proc = snakemake(workdir, "--cores", "1", *tiny, "-R", "compute_whitening", mirror=data_dir)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert set(_job_stats(proc.stdout + proc.stderr)) <= {"compute_whitening", "all"}
-    assert _job_stats(proc.stdout + proc.stderr)["compute_whitening"] == 1
-    assert {p: p.stat().st_mtime_ns for p in paths} == before
+
+@pytest.mark.slow
+def test_real_run_tiny_reruns(tiny_run, workdir, data_dir):
+    # -R calibrate_threshold: calibration and what depends on it, nothing upstream
+    proc = snakemake(workdir, "-n", *TINY, "-R", "calibrate_threshold", mirror=data_dir)
+    assert proc.returncode == 0, proc.stderr
+    assert _job_stats(proc.stdout) == {"calibrate_threshold": 2, "summarize_coverage": 1, "analyze_hst": 1,
+                                       "plot_validation": 1, "write_summary": 1, "all": 1}
+    # appending a multiplier simulates and evaluates only the new one
+    more = workdir / "config" / "tiny_more.yaml"
+    more.write_text((workdir / "config" / "tiny.yaml").read_text().replace("multipliers: [1.0]",
+                                                                           "multipliers: [1.0, 2.0]"))
+    proc = snakemake(workdir, "-n", "--configfile", str(more), mirror=data_dir)
+    assert proc.returncode == 0, proc.stderr
+    assert _job_stats(proc.stdout) == {"simulate_cdm_shard": 2, "evaluate_cdm_profiles": 2, "measure_cdm_grid": 1,
+                                       "analyze_hst": 1, "write_summary": 1, "all": 1}
+    assert "results/simulate_shard/nfw/a2/shard_0.h5" in proc.stdout

@@ -13,6 +13,11 @@ simulate --config C --scene S --shard K --out PATH [--multiplier A] [--overwrite
 preview --config C --scene S [--n 8] --out FIG.png
     Simulate a few images of a scene (in a temporary shard) and plot them with their
     arc masks, to look at a scene before running the workflow.
+train --config C --train SHARD... --val SHARD... --whitening J --out DIR [--ckpt DIR]
+    Train (or resume) the estimator with the config's training section (as the
+    workflow's train_estimator rule): DIR/model.pt and DIR/training_log.csv.
+analyze-hst --config C --model M --thresholds J --out DIR [--hst DIR] [--cdm CSV]
+    Profiles, intervals and figures 5-6 of the real HST lenses (as rule analyze_hst).
 
 Later stages add their sub-commands in :func:`build_parser`.
 """
@@ -116,6 +121,54 @@ def _preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from subslope.campaign import run_training, training_section
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    config = _load_config(args.config)
+    if config is None:
+        return 1
+    ckpt = args.ckpt or str(Path(args.out) / "checkpoints")
+    try:
+        summary = run_training(training_section(config), args.train, args.val, args.whitening, args.out, ckpt,
+                               device=config["training"]["device"])
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {summary['model']} ({summary['epochs']} epochs, stop: {summary['stop_reason']})", file=sys.stderr)
+    return 0
+
+
+def _analyze_hst(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from subslope.campaign import analyze_hst
+    from subslope.inference import gamma_grid
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    config = _load_config(args.config)
+    if config is None:
+        return 1
+    out = Path(args.out)
+    hst, grid = config["hst"], config["inference"]["gamma_grid"]
+    folder = args.hst or str(Path(config["data"]["resources_dir"]) / "hst")
+    try:
+        table = analyze_hst(args.model, folder, args.thresholds, out / "profiles.h5", out / "intervals.csv",
+                            out / "fig5_hst_profiles", out / "fig6_hst_combined", run_name=config["run_name"],
+                            gammas=gamma_grid(grid["low"], grid["high"], grid["n"]), cdm_csv=args.cdm,
+                            combine=hst["combine"], show=hst["show"], highlight=hst["highlight"],
+                            lens_centre=hst["lens_centre"], pixel_scale=config["instrument"]["pixel_scale"],
+                            device=config["inference"]["device"], nfw_scene=config["cdm"]["nfw_scene"],
+                            tnfw_scene=config["cdm"]["tnfw_scene"])
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(table.to_string(index=False))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="subslope",
@@ -155,6 +208,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)")
     p.add_argument("--out", required=True, help="figure file (.png, .pdf)")
     p.set_defaults(func=_preview)
+
+    p = commands.add_parser("train", help="train (or resume training) the likelihood-ratio estimator")
+    p.add_argument("--config", required=True, help="workflow config file (its training section)")
+    p.add_argument("--train", required=True, nargs="+", help="training shard files")
+    p.add_argument("--val", required=True, nargs="+", help="validation shard files")
+    p.add_argument("--whitening", required=True, help="whitening JSON (rule compute_whitening)")
+    p.add_argument("--out", required=True, help="folder for model.pt and training_log.csv")
+    p.add_argument("--ckpt", default=None, help="checkpoint folder (default OUT/checkpoints); resumed from")
+    p.set_defaults(func=_train)
+
+    p = commands.add_parser("analyze-hst", help="profiles, intervals and figures of the real HST lenses")
+    p.add_argument("--config", required=True, help="workflow config file (hst, inference sections)")
+    p.add_argument("--model", required=True, help="model.pt of the estimator")
+    p.add_argument("--thresholds", required=True, help="thresholds.json (rule summarize_coverage)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--hst", default=None, help="HST cutout folder (default <resources_dir>/hst)")
+    p.add_argument("--cdm", default=None, help="cdm_grid.csv for the a = 1 bands of figure 6")
+    p.set_defaults(func=_analyze_hst)
     return parser
 
 

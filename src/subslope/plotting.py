@@ -12,12 +12,14 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.colors import LogNorm
+from matplotlib.patches import Rectangle
 from matplotlib.figure import Figure  # pyplot-free: works under any backend, no global state
 
 from subslope import __version__
 from subslope.observations import Observation
 
-__all__ = ["log_stretch_limits", "plot_hst_gallery", "plot_scene_examples", "plot_scene_examples_from_shard"]
+__all__ = ["log_stretch_limits", "plot_hst_gallery", "plot_scene_examples", "plot_scene_examples_from_shard",
+           "stiff_case_panels", "stiff_cases_figure"]
 
 
 def log_stretch_limits(image: np.ndarray, floor_percentile: float = 1.0, dynamic_range: float = 1e3) -> tuple[float, float]:
@@ -106,13 +108,20 @@ def plot_scene_examples(
     threshold_fraction: float,
     ncols: int = 4,
     cmap: str = "magma",
+    extra_panels: Sequence[tuple[np.ndarray, np.ndarray, str]] | None = None,
 ) -> None:
     """Grid of simulated images (log scale), each with the contour of its arc mask.
 
     ``images`` (k, H, W) e⁻/s per pixel; ``masks`` (k, H, W) booleans (pixels of the
     smooth model above ``threshold_fraction`` of its maximum: where arc-placed subhalos
-    may sit); ``titles`` one per panel. Written to every path of ``outputs``.
+    may sit); ``titles`` one per panel. ``extra_panels``: further (image, mask, title)
+    panels appended after them (e.g. :func:`stiff_case_panels`). Written to every path
+    of ``outputs``.
     """
+    if extra_panels:
+        images = list(np.asarray(images)) + [np.asarray(p[0]) for p in extra_panels]
+        masks = list(np.asarray(masks)) + [np.asarray(p[1]) for p in extra_panels]
+        titles = list(titles) + [p[2] for p in extra_panels]
     images = np.asarray(images)
     if images.ndim != 3 or len(images) == 0 or len(masks) != len(images) or len(titles) != len(images):
         raise ValueError("plot_scene_examples: images (k, H, W), masks and titles must have the same k >= 1")
@@ -148,12 +157,15 @@ def plot_scene_examples_from_shard(
     run_name: str,
     n: int = 8,
     cosmos: str | os.PathLike[str] | None = None,
+    stiff_cases: bool = False,
 ) -> list[int]:
     """Scene-example figure of the first ``n`` images of a shard; returns their indices.
 
     The arc masks are recomputed from the stored parameters with
     :func:`subslope.simulate.smooth_models` (nothing is re-sampled). Titles give the
-    label γ (or the concentration multiplier a of CDM scenes), N_sub and N_LoS.
+    label γ (or the concentration multiplier a of CDM scenes), N_sub and N_LoS. With
+    ``stiff_cases=True`` two panels of SCIENCE.md §4's stiff cases are appended
+    (:func:`stiff_case_panels` with the shard's PSF: N_sub = 1500 at γ = 2.5 and 1.2).
     """
     from subslope.shards import open_shard
     from subslope.simulate import smooth_models
@@ -174,5 +186,65 @@ def plot_scene_examples_from_shard(
     smooth = smooth_models(shard_path, idx, cosmos=cosmos)
     peak = smooth.reshape(k, -1).max(axis=1)
     masks = smooth > frac * peak[:, None, None]
-    plot_scene_examples(images, masks, titles, outputs, scene=scene, run_name=run_name, threshold_fraction=frac)
+    extra = None
+    if stiff_cases:
+        with open_shard(shard_path) as shard:
+            psf = np.asarray(shard.psf)
+        extra = stiff_case_panels(psf)
+    plot_scene_examples(images, masks, titles, outputs, scene=scene, run_name=run_name, threshold_fraction=frac,
+                        extra_panels=extra)
     return idx
+
+
+def stiff_case_panels(psf, *, seed: int = 6, n_sub: int = 1500, gammas=(2.5, 1.2),
+                      result: dict | None = None) -> list[tuple[np.ndarray, np.ndarray, str]]:
+    """(image, arc mask, title) panels of the stiff cases (sheet on, as simulated) for
+    :func:`plot_scene_examples`'s ``extra_panels``; ``result`` reuses a
+    :func:`subslope.diagnostics.stiff_cases` output instead of rendering."""
+    from subslope import diagnostics
+
+    res = result or diagnostics.stiff_cases(psf, seed=seed, n_sub=n_sub, gammas=gammas, sheets=(True,))
+    out = []
+    for case in res["cases"]:
+        if case.gamma is not None and case.sheet and case.gamma in gammas:
+            out.append((res["images"][case.label], res["arc_mask"],
+                        f"stiff: γ={case.gamma:g} N_sub={case.n_sub} (arc {case.arc_ratio:.2f}×)"))
+    return out
+
+
+def stiff_cases_figure(result: dict, outputs: Sequence[str | os.PathLike[str]], *, run_name: str,
+                       cmap: str = "magma") -> None:
+    """Figure of :func:`subslope.diagnostics.stiff_cases`: the smooth reference and every
+    (γ, sheet) case on one common log scale, arc mask in cyan, numbers in the titles."""
+    cases = result["cases"]
+    n = len(cases)
+    ncols = min(n, 5)
+    nrows = math.ceil(n / ncols)
+    fig = Figure(figsize=(2.9 * ncols, 3.1 * nrows + 0.7))
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    for ax in axes.flat:
+        ax.set_axis_off()
+    vmax = max(float(np.max(result["images"][c.label])) for c in cases)
+    vmin = vmax / 1e3
+    rows, cols = result["centre"]
+    for ax, c in zip(axes.flat, cases, strict=False):
+        img = result["images"][c.label]
+        ax.imshow(np.clip(img, vmin, None), origin="lower", cmap=cmap, norm=LogNorm(vmin=vmin, vmax=vmax),
+                  interpolation="nearest")
+        ax.contour(np.asarray(result["arc_mask"], dtype=float), levels=[0.5], colors="cyan", linewidths=0.6,
+                   origin="lower")
+        ax.add_patch(Rectangle(
+            (cols.start - 0.5, rows.start - 0.5), 5, 5, fill=False, ec="lime", lw=0.6))
+        extra = "" if c.gamma is None else f"\nmean Σκ_sub={c.kappa_mean:.2f} [{c.kappa_min:.2f}, {c.kappa_max:.3g}]"
+        ax.set_title(f"{c.label}\narc {c.arc_ratio:.2f}× · total {c.total_ratio:.2f}× · "
+                     f"centre {c.centre_flux:.3f} e⁻/s{extra}", fontsize=7)
+    fig.suptitle("SCIENCE.md §4 stiff cases: EPL subhalos on the arc (no lens light, no noise; common log scale, "
+                 "e$^-$/s per pixel); cyan: smooth arc mask, green: central 5×5", fontsize=9)
+    fig.text(0.5, 0.005, f"config run_name={run_name!r} · subslope {__version__} · "
+             "'sheet off' is a diagnostic only (the simulator always includes the negative sheet)",
+             ha="center", va="bottom", fontsize=7, color="0.3")
+    fig.tight_layout(rect=(0, 0.025, 1, 0.95), h_pad=1.0)
+    for out in outputs:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=130, metadata={"Title": f"subslope stiff cases, run_name={run_name}"})

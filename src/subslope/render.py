@@ -9,7 +9,9 @@ Pipeline for a batch of ``B`` systems (``docs/_simulation_render.md``):
    its negative sheet, all in the lens plane; with line-of-sight halos, one extra plane
    per slice redshift (own negative sheet) and :func:`subslope.raytrace.multi_plane_ray_shoot`;
 3. source surface brightness at β (COSMOS stamps via :mod:`subslope.light.pixelated`, or
-   an elliptical Sérsic rotated by ``src_rotation``), plus the unlensed Sérsic lens light;
+   an elliptical Sérsic rotated by ``src_rotation``, or a multi-Sérsic source: a sum of
+   Sérsic components whose shapes and centre offsets rotate with ``src_rotation``),
+   plus the unlensed Sérsic lens light;
 4. binning of the k×k sub-pixels, × pixel area (e⁻/s per pixel), PSF convolution
    (:func:`subslope.instrument.convolve`, one image at a time).
 
@@ -47,7 +49,7 @@ from torch import Tensor
 from subslope.grid import pixel_grid
 from subslope.instrument import convolve
 from subslope.light.pixelated import pixelated_light
-from subslope.light.sersic import sersic_ellipse_from_magnitude
+from subslope.light.sersic import multi_sersic_from_magnitude, sersic_ellipse_from_magnitude
 from subslope.population import pack_ragged
 from subslope.profiles.epl import epl_deflection, theta_e_to_amp
 from subslope.profiles.multipole import multipole_deflection
@@ -77,7 +79,8 @@ _PER_IMAGE_ON_CPU = True
 #: sub-batch that ran the stage): ``main_lens``, ``shear``, ``multipoles``,
 #: ``subhalos`` (population pass incl. its sheet), ``los`` (one per LoS plane copy),
 #: ``multi_plane``, ``single_plane``, ``lens_light``, ``source_sersic``,
-#: ``source_pixelated``, ``supersample_bin``, ``psf``.
+#: ``source_multi_sersic`` (plus ``source_component``, one count per multi-Sérsic
+#: component evaluated), ``source_pixelated``, ``supersample_bin``, ``psf``.
 STAGE_COUNTS: Counter = Counter()
 
 
@@ -176,6 +179,7 @@ def chunk_width(settings: RenderSettings, n_points: int) -> int:
 # ----------------------------------------------------------------------------- kernels
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
+_MAX_KERNEL_GRAPHS = 64
 
 
 def _epl_kernel(settings: RenderSettings, device: torch.device):
@@ -189,6 +193,11 @@ def _epl_kernel(settings: RenderSettings, device: torch.device):
     if key in _COMPILE_FAILED:
         return epl_chunk
     if key not in _COMPILED:
+        # One graph is compiled per (dtype, n_terms, chunk width, points, with_kappa);
+        # dynamo's default of 8 graphs per function would silently fall back to eager
+        # (3-4x slower) in a process that renders more settings than that.
+        dynamo_config = torch._dynamo.config
+        dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, _MAX_KERNEL_GRAPHS)
         _COMPILED[key] = torch.compile(epl_chunk, dynamic=False, fullgraph=True)
     compiled = _COMPILED[key]
 
@@ -249,7 +258,11 @@ def _population_pass(pop: _Pop, x: Tensor, y: Tensor, settings: RenderSettings, 
     ax = ay = kap = None
     n_max = int(pop.counts.max()) if pop.counts.size else 0
     for start in range(0, n_max, w):  # chunks past every system's count hold only padding
-        p = {k: v[:, start:start + w, None] for k, v in pop.params.items()}
+        # fresh (b, w, 1) copies: slices of the padded (b, N_max) arrays carry N_max in their
+        # strides (also for b = 1, which .contiguous() keeps), and the compiled kernel would
+        # recompile for every population size
+        p = {k: v.new_empty((b, w, 1)).copy_(v[:, start:start + w, None])
+             for k, v in pop.params.items()}
         if pop.profile == "epl":
             dax, day, dk = kernel(xe, ye, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"],
                                   settings.n_terms, True)
@@ -289,6 +302,19 @@ _GROUPS = {"multipoles": ("a3", "phi3", "a4", "phi4"), "shear": ("shear_g1", "sh
            "source_sersic": ("src_mag", "src_r", "src_n", "src_e1", "src_e2")}
 
 
+def _multi_sersic_slots(macro: dict) -> int:
+    """Number K of multi-Sérsic component slots in ``macro`` (0: not a multi-Sérsic source)."""
+    if "src_ncomp" not in macro:
+        return 0
+    k = 0
+    while f"src_frac_{k}" in macro:
+        k += 1
+    return k
+
+
+_MULTI_PER = ("frac", "r", "n", "e1", "e2", "dx", "dy")
+
+
 def _check_macro(macro: dict, sources) -> int:
     missing = [k for k in _REQUIRED if k not in macro]
     if missing:
@@ -301,6 +327,17 @@ def _check_macro(macro: dict, sources) -> int:
         have = [k in macro for k in keys]
         if any(have) and not all(have):
             raise ValueError(f"macro has only some of the {g} keys {keys}: give all or none")
+    kmax = _multi_sersic_slots(macro)
+    if "src_ncomp" in macro or "src_mag_total" in macro:
+        need = ["src_mag_total", "src_ncomp"] + [f"src_{p}_{j}" for j in range(max(kmax, 1)) for p in _MULTI_PER]
+        missing = [kk for kk in need if kk not in macro]
+        if missing:
+            raise ValueError(f"multi-Sérsic source keys {missing} are missing from macro "
+                             "(see subslope.scenes.multi_sersic_keys)")
+        if "src_mag" in macro or sources is not None:
+            raise ValueError("give exactly one source: multi-Sérsic keys (src_mag_total, src_ncomp, ...), "
+                             "Sérsic keys (src_mag, ...) or sources=")
+        return n
     sersic = "src_mag" in macro
     if sersic and sources is not None:
         raise ValueError("give either Sérsic source keys (src_mag, ...) in macro or sources=, not both")
@@ -427,7 +464,31 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
 
     n_ss = (settings.npix * k) ** 2
     bx, by = bx[:, :n_ss], by[:, :n_ss]
-    if sources is None:
+    kmax = _multi_sersic_slots(macro)
+    if kmax:
+        _stage("source_multi_sersic")
+        rot = par("src_rotation")
+        c2, s2 = torch.cos(2 * rot), torch.sin(2 * rot)
+        c1, s1 = torch.cos(rot), torch.sin(rot)
+        cx, cy = par("src_x"), par("src_y")
+        # Components switched off (zero flux for every image of the sub-batch) are skipped.
+        active = [j for j in range(kmax) if np.any(np.asarray(macro[f"src_frac_{j}"])[idx] > 0)]
+        comp: dict[str, list] = {kk: [] for kk in ("f", "r", "n", "e1", "e2", "x", "y")}
+        for j in active:
+            _stage("source_component")
+            e1, e2 = par(f"src_e1_{j}"), par(f"src_e2_{j}")
+            dx, dy = par(f"src_dx_{j}"), par(f"src_dy_{j}")
+            comp["f"].append(par(f"src_frac_{j}"))
+            comp["r"].append(par(f"src_r_{j}"))
+            comp["n"].append(par(f"src_n_{j}"))
+            comp["e1"].append(c2 * e1 - s2 * e2)
+            comp["e2"].append(s2 * e1 + c2 * e2)
+            comp["x"].append(cx + c1 * dx - s1 * dy)
+            comp["y"].append(cy + s1 * dx + c1 * dy)
+        sb = multi_sersic_from_magnitude(bx, by, par("src_mag_total"), comp["f"], comp["r"], comp["n"],
+                                         comp["e1"], comp["e2"], comp["x"], comp["y"],
+                                         zero_point=settings.zero_point)
+    elif sources is None:
         _stage("source_sersic")
         rot = par("src_rotation")
         e1, e2 = par("src_e1"), par("src_e2")

@@ -47,6 +47,10 @@ __all__ = [
     "Components",
     "Redshifts",
     "SourceSpec",
+    "MultiSersicSpec",
+    "MAX_SOURCE_COMPONENTS",
+    "MULTI_SERSIC_KEYS",
+    "multi_sersic_keys",
     "MainLensSpec",
     "MultipoleSpec",
     "ShearSpec",
@@ -63,7 +67,12 @@ __all__ = [
 SUBHALO_PROFILES = ("epl", "nfw", "tnfw")
 LOS_PROFILES = ("epl", "nfw")
 PLACEMENTS = ("arc", "everywhere")
-SOURCE_KINDS = ("cosmos", "sersic")
+SOURCE_KINDS = ("cosmos", "sersic", "multi_sersic")
+#: Largest number of components of the multi-Sérsic source (the upper end of the
+#: ``source.multi_sersic.n_components`` support may not exceed it).
+MAX_SOURCE_COMPONENTS = 8
+#: Per-component macro keys of the multi-Sérsic source (``src_<name>_<k>``).
+MULTI_SERSIC_KEYS = ("frac", "r", "n", "e1", "e2", "dx", "dy")
 COSMOS_SPLITS = ("train", "validation", "test")
 
 
@@ -102,6 +111,19 @@ PAPER_SCENE: dict[str, Any] = {
         "n_sersic": _u(0.8, 3.0),
         "e1": _u(-0.3, 0.3),
         "e2": _u(-0.3, 0.3),
+        # Multi-Sérsic source (kind: multi_sersic only; not part of the paper): a main body
+        # (component 0: the Sérsic priors above, weight 1, at the source centre) plus
+        # n_components − 1 compact clumps (priors below), total magnitude from `mag`.
+        "multi_sersic": {
+            "n_components": {"dist": "uniform_int", "low": 1, "high": 4},
+            "share": _u(0.1, 0.6),
+            "r_sersic": _u(0.02, 0.1),
+            "n_sersic": _u(0.5, 1.5),
+            "e1": _u(-0.2, 0.2),
+            "e2": _u(-0.2, 0.2),
+            "offset": _u(0.05, 0.35),
+            "offset_angle": _u(-math.pi, math.pi),
+        },
     },
     "main_lens": {
         "x": _u(-0.2, 0.2),
@@ -222,6 +244,26 @@ def _within(p: Prior, key: str, lo: float, hi: float) -> Prior:
     return p
 
 
+def _multi_sersic(d: Any, key: str) -> MultiSersicSpec:
+    if not isinstance(d, Mapping):
+        raise SceneError(f"config key {key} = {d!r} must be a mapping")
+    spec = MultiSersicSpec(**{p: _prior(d, p, key) for p in (
+        "n_components", "share", "r_sersic", "n_sersic", "e1", "e2", "offset", "offset_angle")})
+    nc = spec.n_components
+    lo, hi = nc.support
+    if nc.dist not in ("uniform_int", "fixed") or lo != int(lo) or hi != int(hi) or lo < 1 \
+            or hi > MAX_SOURCE_COMPONENTS:
+        raise SceneError(f"config key {key}.n_components must be a uniform_int prior or a fixed integer "
+                         f"within [1, {MAX_SOURCE_COMPONENTS}]")
+    _within(spec.share, f"{key}.share", 0.0, math.inf)
+    _within(spec.r_sersic, f"{key}.r_sersic", 1e-6, math.inf)
+    _within(spec.n_sersic, f"{key}.n_sersic", 0.2, 10.0)
+    for p in ("e1", "e2"):
+        _within(getattr(spec, p), f"{key}.{p}", -0.9, 0.9)
+    _within(spec.offset, f"{key}.offset", 0.0, math.inf)
+    return spec
+
+
 @dataclass(frozen=True)
 class Components:
     """Which optional components are rendered (main lens and source are always on)."""
@@ -240,11 +282,46 @@ class Redshifts:
 
 
 @dataclass(frozen=True)
-class SourceSpec:
-    """Source light: a COSMOS galaxy of ``split`` or a parametric Sérsic (``kind``).
+class MultiSersicSpec:
+    """Clumps of the multi-Sérsic source (``source.kind = 'multi_sersic'``).
 
-    ``x``, ``y`` (arcsec) and ``rotation`` (rad) apply to both kinds; ``mag``,
-    ``r_sersic`` (arcsec), ``n_sersic``, ``e1``, ``e2`` only to ``kind='sersic'``.
+    ``n_components`` (integer prior, support within [1, MAX_SOURCE_COMPONENTS]) counts the
+    main body plus the clumps. Each clump k ≥ 1 draws an unnormalised flux weight
+    ``share`` (the body's weight is 1), ``r_sersic`` (arcsec), ``n_sersic``, ``e1``,
+    ``e2`` and a centre ``offset`` (arcsec) at ``offset_angle`` (rad) from the source
+    centre, in the source's own frame (rotated with it by ``src_rotation``).
+    """
+
+    n_components: Prior
+    share: Prior
+    r_sersic: Prior
+    n_sersic: Prior
+    e1: Prior
+    e2: Prior
+    offset: Prior
+    offset_angle: Prior
+
+    @property
+    def max_components(self) -> int:
+        """K: the number of component slots stored per image (top of the count support)."""
+        return int(self.n_components.support[1])
+
+
+def multi_sersic_keys(max_components: int) -> list[str]:
+    """Macro keys of a multi-Sérsic source with ``max_components`` slots, in drawing order."""
+    return ["src_mag_total", "src_ncomp"] + [
+        f"src_{name}_{k}" for k in range(max_components) for name in MULTI_SERSIC_KEYS
+    ]
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """Source light: a COSMOS galaxy of ``split``, a parametric Sérsic or a multi-Sérsic.
+
+    ``x``, ``y`` (arcsec) and ``rotation`` (rad) apply to every kind; ``mag``,
+    ``r_sersic`` (arcsec), ``n_sersic``, ``e1``, ``e2`` to ``kind='sersic'`` and, as the
+    total magnitude and the main body, to ``kind='multi_sersic'``, whose clumps follow
+    ``multi_sersic``.
     """
 
     kind: str
@@ -257,6 +334,7 @@ class SourceSpec:
     n_sersic: Prior
     e1: Prior
     e2: Prior
+    multi_sersic: MultiSersicSpec
 
 
 @dataclass(frozen=True)
@@ -395,6 +473,7 @@ class Scene:
             kind=_choice(s["kind"], SOURCE_KINDS, f"{k}.kind"),
             split=_choice(s["split"], COSMOS_SPLITS, f"{k}.split"),
             **{p: _prior(s, p, k) for p in ("x", "y", "rotation", "mag", "r_sersic", "n_sersic", "e1", "e2")},
+            multi_sersic=_multi_sersic(s["multi_sersic"], f"{k}.multi_sersic"),
         )
         _within(src.r_sersic, f"{k}.r_sersic", 1e-6, math.inf)
         _within(src.n_sersic, f"{k}.n_sersic", 0.2, 10.0)
@@ -561,8 +640,10 @@ def sample_macro(
         **{c: getattr(comp, c) for c in ("multipoles", "shear", "lens_light", "subhalos", "los")},
     }
     out: dict[str, np.ndarray] = {}
+    drawn: dict[str, np.ndarray] = {}
     for name, component, path in _MACRO:
         draw = _attr(scene, path).sample(rng, n)  # always drawn: keeps the stream aligned
+        drawn[name] = draw
         if on[component]:
             out[name] = draw
     gamma_sets = scene.subhalos.gamma.sample(rng, n_sets)
@@ -583,5 +664,35 @@ def sample_macro(
             raise ValueError(f"multiplier = {multiplier!r} must be a finite number > 0")
         out["c_multiplier"] = np.full(n, float(multiplier))
     out["set_index"] = np.repeat(np.arange(n_sets, dtype=np.int64), k)
+    if scene.source.kind == "multi_sersic":
+        # Drawn after everything else, so the other kinds' streams are unchanged.
+        out.update(_sample_multi_sersic(scene.source, drawn, n, rng))
+    return out
+
+
+def _sample_multi_sersic(src: SourceSpec, drawn: dict[str, np.ndarray], n: int,
+                         rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Multi-Sérsic keys (:func:`multi_sersic_keys`): body = the Sérsic draw, then clumps."""
+    ms = src.multi_sersic
+    kmax = ms.max_components
+    ncomp = np.rint(ms.n_components.sample(rng, n)).astype(np.int64)
+    out: dict[str, np.ndarray] = {"src_mag_total": drawn["src_mag"], "src_ncomp": ncomp}
+    weights = np.zeros((kmax, n))
+    weights[0] = 1.0
+    comps = [{"r": drawn["src_r"], "n": drawn["src_n"], "e1": drawn["src_e1"], "e2": drawn["src_e2"],
+              "dx": np.zeros(n), "dy": np.zeros(n)}]
+    for j in range(1, kmax):  # every slot drawn for every image: fixed stream layout
+        share = ms.share.sample(rng, n)
+        c = {p: getattr(ms, a).sample(rng, n) for p, a in
+             (("r", "r_sersic"), ("n", "n_sersic"), ("e1", "e1"), ("e2", "e2"))}
+        rad, ang = ms.offset.sample(rng, n), ms.offset_angle.sample(rng, n)
+        c["dx"], c["dy"] = rad * np.cos(ang), rad * np.sin(ang)
+        weights[j] = np.where(j < ncomp, share, 0.0)
+        comps.append(c)
+    frac = weights / weights.sum(axis=0)
+    for j, c in enumerate(comps):
+        out[f"src_frac_{j}"] = frac[j]
+        for p in MULTI_SERSIC_KEYS[1:]:
+            out[f"src_{p}_{j}"] = c[p]
     return out
 

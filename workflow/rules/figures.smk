@@ -21,3 +21,80 @@ rule plot_hst_gallery:
         "../envs/subslope.yaml"
     script:
         "../scripts/plot_hst_gallery.py"
+
+
+rule plot_training_curves:
+    input:
+        log_csv=rules.train_estimator.output.log_csv,
+    output:
+        pdf="results/figures/training_curves.pdf",
+        png=report(
+            "results/figures/training_curves.png",
+            caption="../report/training_curves.rst",
+            category="Training",
+        ),
+    params:
+        run_name=RUN,
+    log:
+        "logs/plot_training_curves.log",
+    benchmark:
+        "results/benchmarks/plot_training_curves.tsv"
+    threads: 1
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/plot_training_curves.py"
+
+
+rule plot_validation:
+    input:
+        single=lambda wildcards: profile_files(CAL["single_scene"]),
+        stacks=lambda wildcards: profile_files(CAL["stack_scene"]),
+        thresholds=rules.summarize_coverage.output.json,
+    output:
+        trend="results/plot_validation/trend.json",
+        fig2_pdf="results/figures/fig2_validation.pdf",
+        fig2_png=report(
+            "results/figures/fig2_validation.png",
+            caption="../report/fig2_validation.rst",
+            category="Validation",
+        ),
+        fig3_pdf="results/figures/fig3_stacks.pdf",
+        fig3_png=report(
+            "results/figures/fig3_stacks.png",
+            caption="../report/fig3_stacks.rst",
+            category="Validation",
+        ),
+    params:
+        run_name=RUN,
+    log:
+        "logs/plot_validation.log",
+    benchmark:
+        "results/benchmarks/plot_validation.tsv"
+    threads: 1
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/plot_validation.py"
+
+
+rule write_summary:
+    input:
+        unpack(summary_inputs),
+    output:
+        md="results/summary.md",
+        csv=expand("results/{name}.csv", name=SUMMARY_CSVS),
+    params:
+        run_name=RUN,
+        config_hash=CONFIG_HASH,
+        config_files=CONFIG_FILES,
+        benchmarks=benchmark_files(),
+        nfw_scene=CDM["nfw_scene"],
+        tnfw_scene=CDM["tnfw_scene"],
+    log:
+        "logs/write_summary.log",
+    threads: 1
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/write_summary.py"

@@ -19,6 +19,8 @@ rule simulate_shard:
         config_hash=lambda wildcards: simulation_hash(wildcards.scene),
     log:
         "logs/simulate_shard/{scene}/shard_{shard}.log",
+    benchmark:
+        "results/benchmarks/simulate_shard/{scene}/shard_{shard}.tsv"
     threads: 1
     resources:
         mem_mb=4000,
@@ -38,6 +40,8 @@ use rule simulate_shard as simulate_cdm_shard with:
         multiplier=r"[0-9]+(\.[0-9]+)?(e[-+]?[0-9]+)?",
     log:
         "logs/simulate_shard/{scene}/a{multiplier}/shard_{shard}.log",
+    benchmark:
+        "results/benchmarks/simulate_shard/{scene}/a{multiplier}/shard_{shard}.tsv"
 
 
 rule compute_whitening:
@@ -47,6 +51,8 @@ rule compute_whitening:
         json="results/compute_whitening/whitening.json",
     log:
         "logs/compute_whitening.log",
+    benchmark:
+        "results/benchmarks/compute_whitening.tsv"
     threads: 1
     resources:
         mem_mb=2000,

@@ -49,6 +49,7 @@ __all__ = [
     "elliptical_radius_squared",
     "sersic_ellipse",
     "sersic_ellipse_from_magnitude",
+    "multi_sersic_from_magnitude",
     "SersicEllipse",
 ]
 
@@ -191,6 +192,52 @@ def sersic_ellipse_from_magnitude(
     mag = _as_tensor(magnitude, log_shape)
     log_flux = -0.4 * _LN10 * (mag - zero_point)
     return torch.exp(log_flux - sersic_log_flux_per_amp(rs, n) + log_shape)
+
+
+def multi_sersic_from_magnitude(
+    x,
+    y,
+    magnitude,
+    fractions,
+    r_sersic,
+    n_sersic,
+    e1,
+    e2,
+    center_x,
+    center_y,
+    *,
+    zero_point: float = ZERO_POINT_F814W,
+    r_floor: float = 1e-4,
+) -> torch.Tensor:
+    """Sum of elliptical Sérsic components sharing one total magnitude, e⁻/s per arcsec².
+
+    ``magnitude`` is the total apparent magnitude; component ``k`` carries the flux
+    fraction ``fractions[k]`` (≥ 0; the fractions of a system should sum to 1) and the
+    shape ``r_sersic[k]`` (arcsec), ``n_sersic[k]``, ``e1[k]``, ``e2[k]`` and centre
+    ``center_x[k]``, ``center_y[k]`` (arcsec). Every argument after ``magnitude`` is a
+    sequence of length K of values that broadcast like :func:`sersic_ellipse_from_magnitude`'s.
+    A component whose fractions are all ≤ 0 is skipped (not evaluated); a zero fraction of
+    one system among others adds exact zeros, so the sum does not depend on the batch.
+    Components are added in order k = 0, 1, … (a fixed order: deterministic).
+    """
+    k = len(fractions)
+    for name, seq in (("r_sersic", r_sersic), ("n_sersic", n_sersic), ("e1", e1), ("e2", e2),
+                      ("center_x", center_x), ("center_y", center_y)):
+        if len(seq) != k:
+            raise ValueError(f"multi_sersic_from_magnitude: {name} has {len(seq)} components, fractions has {k}")
+    out = None
+    for j in range(k):
+        f = _as_tensor(fractions[j], x if isinstance(x, torch.Tensor) else None)
+        if not bool((f > 0).any()):
+            continue
+        sb = f.clamp(min=0.0) * sersic_ellipse_from_magnitude(
+            x, y, magnitude, r_sersic[j], n_sersic[j], e1[j], e2[j], center_x[j], center_y[j],
+            zero_point=zero_point, r_floor=r_floor)
+        out = sb if out is None else out + sb
+    if out is None:
+        xt = _as_tensor(x)
+        return torch.zeros_like(xt + _as_tensor(y, xt))
+    return out
 
 
 @dataclass

@@ -1,0 +1,85 @@
+"""Accuracy budget of the default render settings on sampled scenes (issue 7; not timed).
+
+Budget (docs/performance.md): against a high-accuracy render of the same noise-free
+image, max |Δ| ≤ 0.1 σ_noise (σ from ``instrument.noise_sigma_map`` of the reference)
+and relative L2 ≤ 1e-3. ``tests/test_render.py`` checks the defaults on two synthetic
+EPL populations; here the scenes come from the package's own samplers
+(``scenes.sample_macro``, ``subhalos.sample_subhalos`` on the arc / everywhere,
+``los.sample_los_batch`` + ``los.los_profiles``), cover the NFW/tNFW CDM scenes (eager
+population path) with NFW line-of-sight planes, the stiff γ → 1 end of the training
+prior, and supersampling 2, so a later speed-up of any of these paths cannot silently
+lose accuracy. The ``reference`` test compares the defaults with lenstronomy 1.14.2 on
+small multi-plane scenes (benchmarks/_common.py builds the same model in lenstronomy).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import _common as C  # noqa: E402
+
+from subslope import render as R  # noqa: E402
+
+MAX_SIGMA, REL_L2 = 0.1, 1e-3
+DEFAULT = R.RenderSettings(device="cpu")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _reference(s: R.RenderSettings) -> R.RenderSettings:
+    return dataclasses.replace(s, dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off",
+                               chunk_members=16, convolution="direct")
+
+
+# (preset, N_sub, LoS, label γ, seed, settings overrides)
+SCENES = {
+    "train-nsub0-los": ("train", 0, True, None, 11, {}),
+    "train-nsub1500-los": ("train", 1500, True, None, 12, {}),
+    "train-stiff-gamma1.1-nsub1500-los": ("train", 1500, True, 1.1, 13, {}),
+    "train-nsub200-k2": ("train", 200, False, None, 14, {"supersample": 2}),
+    "nfw-nsub600-los": ("nfw", 600, True, None, 15, {}),
+    "tnfw-nsub600-los": ("tnfw", 600, True, None, 16, {}),
+}
+
+
+@pytest.mark.parametrize("key", list(SCENES))
+def test_default_within_budget(key):
+    kind, n_sub, los, gamma, seed, over = SCENES[key]
+    batch = C.make_scene(kind, 1, n_sub, los, seed=seed, gamma_label=gamma, delta_los=1.5)
+    s = dataclasses.replace(DEFAULT, **over)
+    img, ref = batch.render(s), batch.render(_reference(s))
+    assert torch.isfinite(img).all()
+    max_sigma, rel = C.image_errors(img, ref)
+    print(f"{key}: max|Δ|/σ = {max_sigma:.2e}, rel L2 = {rel:.2e}")
+    assert max_sigma <= MAX_SIGMA and rel <= REL_L2, (max_sigma, rel)
+
+
+@pytest.mark.reference
+@pytest.mark.parametrize("kind,n_sub", [("train", 40), ("tnfw", 40)])
+def test_default_vs_lenstronomy_multiplane(kind, n_sub):
+    """Defaults vs lenstronomy MultiPlane (per-slice sheets traced by lenstronomy)."""
+    import warnings
+
+    warnings.filterwarnings("ignore", message="Cosmology is provided")
+    batch = C.make_scene(kind, 1, n_sub, True, seed=21, gamma_label=2.0 if kind == "train" else None,
+                         delta_los=1.5)
+    model = C.lenstronomy_model(batch, 0)
+    assert model.n_planes > 1
+    theirs = torch.as_tensor(model.image())[None]
+    max_sigma, rel = C.image_errors(batch.render(DEFAULT), theirs)
+    _, rel64 = C.image_errors(batch.render(_reference(DEFAULT)), theirs)
+    print(f"{kind}: default max|Δ|/σ = {max_sigma:.2e}, rel L2 = {rel:.2e}; float64 reference rel L2 = {rel64:.2e}")
+    assert max_sigma <= MAX_SIGMA and rel <= REL_L2, (max_sigma, rel)
+    assert rel64 <= 1e-5

@@ -1,0 +1,42 @@
+# Stage: training. One estimator trained on the training shards, early-stopped on the
+# validation shards (subslope.nre.train). Checkpoints live in
+# results/checkpoints/train_estimator/<key>/, which is NOT a declared output: Snakemake
+# never deletes it (failed job, walltime kill, --forcerun), so a restarted job resumes
+# from last.pt. <key> hashes the training section and the data, so a changed config or
+# changed shards start a fresh folder instead of resuming an incompatible run.
+
+TRAINING = subslope.campaign.training_section(config)
+CKPT_KEY = subslope.campaign.checkpoint_key(
+    TRAINING,
+    shard_files("train"),
+    shard_files("validation"),
+    {scene: simulation_hash(scene) for scene in ("train", "validation") if shard_files(scene)},
+)
+
+
+rule train_estimator:
+    input:
+        train=lambda wildcards: shard_files("train"),
+        val=lambda wildcards: shard_files("validation"),
+        whitening=rules.compute_whitening.output.json,
+    output:
+        model="results/train_estimator/model.pt",
+        log_csv="results/train_estimator/training_log.csv",
+    params:
+        training=TRAINING,
+        ckpt_dir=f"results/checkpoints/train_estimator/{CKPT_KEY}",
+        device=config["training"]["device"],
+    log:
+        "logs/train_estimator.log",
+    benchmark:
+        "results/benchmarks/train_estimator.tsv"
+    threads: config["training"]["threads"]
+    resources:
+        mem_mb=config["training"]["mem_mb"],
+        runtime=config["training"]["runtime"],
+        # GPU request for cluster executors (SLURM: --gpus); local runs ignore it.
+        gpu=config["training"]["gpus"],
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/train_estimator.py"

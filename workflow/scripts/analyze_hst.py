@@ -1,0 +1,42 @@
+"""Snakemake script of rule analyze_hst: profiles, intervals and figures 5-6 of the real HST lenses."""
+
+import logging
+
+import torch
+
+from subslope.campaign import analyze_hst
+from subslope.inference import gamma_grid
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    torch.set_num_threads(snakemake.threads)
+    hst = snakemake.params.hst
+    grid = snakemake.params.gamma_grid
+    table = analyze_hst(
+        snakemake.input.model,
+        snakemake.params.folder,
+        snakemake.input.thresholds,
+        snakemake.output.h5,
+        snakemake.output.csv,
+        snakemake.output.fig5_pdf[: -len(".pdf")],
+        snakemake.output.fig6_pdf[: -len(".pdf")],
+        run_name=snakemake.params.run_name,
+        gammas=gamma_grid(grid["low"], grid["high"], grid["n"]),
+        cdm_csv=snakemake.input.cdm or None,
+        combine=hst["combine"],
+        show=hst["show"],
+        highlight=hst["highlight"],
+        lens_centre=hst["lens_centre"],
+        pixel_scale=snakemake.params.pixel_scale,
+        device=snakemake.params.device,
+        nfw_scene=snakemake.params.nfw_scene,
+        tnfw_scene=snakemake.params.tnfw_scene,
+    )
+    logging.info("intervals:\n%s", table.to_string())
+except Exception:
+    logging.exception("analyze_hst failed")
+    raise

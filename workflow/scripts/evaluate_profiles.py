@@ -1,0 +1,30 @@
+"""Snakemake script of rule evaluate_profiles: ln r on the gamma grid for every image of one shard (also evaluate_cdm_profiles)."""
+
+import logging
+
+import torch
+
+from subslope.campaign import evaluate_shard
+from subslope.inference import gamma_grid
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    torch.set_num_threads(snakemake.threads)
+    grid = snakemake.params.gamma_grid
+    path = evaluate_shard(
+        snakemake.input.model,
+        snakemake.input.shard,
+        snakemake.output.h5,
+        gammas=gamma_grid(grid["low"], grid["high"], grid["n"]),
+        batch_size=snakemake.params.batch_size,
+        device=snakemake.params.device,
+        run_name=snakemake.params.run_name,
+    )
+    logging.info("wrote %s", path)
+except Exception:
+    logging.exception("evaluate_profiles failed")
+    raise

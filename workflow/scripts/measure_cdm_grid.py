@@ -1,0 +1,29 @@
+"""Snakemake script of rule measure_cdm_grid: stack MLEs of the NFW/tNFW sets per multiplier and figure 4."""
+
+import logging
+
+from subslope.campaign import measure_cdm_grid
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    files = {}
+    for scene, multiplier, path in snakemake.params.groups:
+        files.setdefault((scene, float(multiplier)), []).append(path)
+    table = measure_cdm_grid(
+        files,
+        snakemake.output.npz,
+        snakemake.output.csv,
+        snakemake.output.pdf[: -len(".pdf")],
+        run_name=snakemake.params.run_name,
+        nfw_scene=snakemake.params.nfw_scene,
+        tnfw_scene=snakemake.params.tnfw_scene,
+        band=tuple(snakemake.params.band),
+    )
+    logging.info("concentration grid:\n%s", table.to_string())
+except Exception:
+    logging.exception("measure_cdm_grid failed")
+    raise

@@ -1,0 +1,17 @@
+"""Snakemake script of rule plot_training_curves: loss curves of the estimator training."""
+
+import logging
+
+from subslope.campaign import plot_training_curves
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    plot_training_curves(snakemake.input.log_csv, snakemake.output.pdf[: -len(".pdf")],
+                         run_name=snakemake.params.run_name)
+except Exception:
+    logging.exception("plot_training_curves failed")
+    raise

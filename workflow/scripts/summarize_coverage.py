@@ -1,0 +1,23 @@
+"""Snakemake script of rule summarize_coverage: calibration table, thresholds per N and the coverage figure."""
+
+import logging
+
+from subslope.campaign import summarize_coverage
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    table, thresholds = summarize_coverage(
+        list(snakemake.input.npz),
+        snakemake.output.csv,
+        snakemake.output.json,
+        snakemake.output.pdf[: -len(".pdf")],
+        run_name=snakemake.params.run_name,
+    )
+    logging.info("calibration table:\n%s", table.to_string())
+except Exception:
+    logging.exception("summarize_coverage failed")
+    raise

@@ -1,0 +1,30 @@
+"""Snakemake script of rule train_estimator: train (or resume training) the likelihood-ratio estimator."""
+
+import logging
+import os
+
+import torch
+
+from subslope.campaign import run_training
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    torch.set_num_threads(snakemake.threads)
+    logging.info("checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir)
+    summary = run_training(
+        snakemake.params.training,
+        list(snakemake.input.train),
+        list(snakemake.input.val),
+        snakemake.input.whitening,
+        os.path.dirname(snakemake.output.model),
+        snakemake.params.ckpt_dir,
+        device=snakemake.params.device,
+    )
+    logging.info("training done: %s", summary)
+except Exception:
+    logging.exception("train_estimator failed")
+    raise

@@ -1,0 +1,36 @@
+"""Snakemake script of rule write_summary: results/summary.md and the CSVs beside it."""
+
+import logging
+
+import json
+
+from subslope.campaign import write_summary
+
+logging.basicConfig(
+    filename=snakemake.log[0],
+    level=logging.INFO,
+    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+)
+try:
+    inputs = snakemake.input
+    trend = None
+    if "trend" in inputs.keys():
+        with open(inputs.trend, encoding="utf-8") as fh:
+            trend = json.load(fh)
+    path = write_summary(
+        snakemake.output.md,
+        run_name=snakemake.params.run_name,
+        config_hash=snakemake.params.config_hash,
+        config_file=", ".join(snakemake.params.config_files),
+        hst_csv=inputs.get("hst"),
+        cdm_csv=inputs.get("cdm"),
+        calibration_csv=inputs.get("calibration"),
+        trend=trend,
+        benchmarks=snakemake.params.benchmarks,
+        nfw_scene=snakemake.params.nfw_scene,
+        tnfw_scene=snakemake.params.tnfw_scene,
+    )
+    logging.info("wrote %s", path)
+except Exception:
+    logging.exception("write_summary failed")
+    raise
