@@ -20,7 +20,8 @@ CONFIG = REPO / "config" / "config.yaml"
 #: reference values): the 10 bundled COSMOS galaxies need relaxed cuts and a coarser split;
 #: the reduced campaign's sizes, compiled rendering and training settings for a 2-core CPU.
 SHIPPED_DEVIATIONS = {
-    ("simulation", "sources", "cuts"), ("simulation", "sources", "split"), ("simulation", "scenes"),
+    ("simulation", "sources", "cuts"), ("simulation", "sources", "split"),
+    ("simulation", "sources", "mag_renormalize"), ("simulation", "scenes"),
     ("simulation", "multipliers"), ("simulation", "render", "compile"), ("training", "batch_size"),
     ("training", "num_workers"), ("training", "checkpoint_every"),
 }

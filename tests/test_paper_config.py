@@ -45,6 +45,7 @@ def test_paper_config_has_the_paper_numbers():
     assert sim["sources"]["cuts"] == {"mag_max": 20.0, "min_stamp_side": 64, "min_flux_radius": 10.0,
                                       "zphot_max": 1.0, "exclude": []}
     assert (sim["sources"]["split"]["train"], sim["sources"]["split"]["test"]) == (0.96, 0.01)
+    assert sim["sources"]["mag_renormalize"] is None
     assert cfg["training"]["arch"]["preset"] == "resnet50" and cfg["training"]["batch_size"] == 1000
     assert cfg["training"]["lr"] == 1e-3 and cfg["training"]["mask_factor"] == 1.5
     assert cfg["scenes"]["train"]["subhalos"]["count"] == {"dist": "uniform_int", "low": 0, "high": 3000}
