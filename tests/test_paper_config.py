@@ -56,6 +56,7 @@ def test_paper_config_has_the_paper_numbers():
 def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     if not SNAKEMAKE.exists():
         pytest.skip(f"snakemake not found next to {sys.executable}")
+    pytest.importorskip("snakemake_executor_plugin_slurm", reason="pip install -e '.[slurm]'")
     for name in ("Snakefile",):
         shutil.copy(REPO / name, tmp_path)
     for folder in ("workflow", "config", "profiles"):

@@ -157,11 +157,17 @@ def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
     proc = snakemake(workdir, "-n", "--configfile", _sim_only(workdir), mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     stats = _job_stats(proc.stdout)
-    # reduced config: train 5 shards, validation 1, test_epl 2; nfw, tnfw 1 shard x 3 multipliers
-    assert stats["simulate_shard"] == 8 and stats["simulate_cdm_shard"] == 6, stats
+    from subslope import config as cfgmod
+
+    sim = cfgmod.load(workdir / "config" / "config.yaml", env=False)["simulation"]
+    n_mult = len(sim["multipliers"])
+    # one job per shard of the EPL scenes; per shard and multiplier of the CDM scenes
+    assert stats["simulate_shard"] == sum(sim["scenes"][s]["n_shards"] for s in ("train", "validation", "test_epl"))
+    assert stats["simulate_cdm_shard"] == n_mult * (sim["scenes"]["nfw"]["n_shards"] + sim["scenes"]["tnfw"]["n_shards"])
     assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 5, stats
     assert "train_estimator" not in stats and "evaluate_profiles" not in stats
-    for path in ("train/shard_0.h5", "train/shard_4.h5", "validation/shard_0.h5", "test_epl/shard_1.h5",
+    last_train = sim["scenes"]["train"]["n_shards"] - 1
+    for path in ("train/shard_0.h5", f"train/shard_{last_train}.h5", "validation/shard_0.h5", "test_epl/shard_1.h5",
                  "nfw/a0.5/shard_0.h5", "nfw/a1/shard_0.h5", "nfw/a4/shard_0.h5", "tnfw/a4/shard_0.h5"):
         assert f"results/simulate_shard/{path}" in proc.stdout, path
 
