@@ -3,12 +3,9 @@
 import logging
 
 from subslope.whitening import compute_whitening
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     result = compute_whitening(list(snakemake.input.shards), snakemake.output.json)
     logging.info("mean %.6g, std %.6g over %d images of %d shards",

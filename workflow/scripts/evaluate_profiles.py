@@ -6,12 +6,9 @@ import torch
 
 from subslope.campaign import evaluate_shard
 from subslope.inference import gamma_grid
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     torch.set_num_threads(snakemake.threads)
     grid = snakemake.params.gamma_grid

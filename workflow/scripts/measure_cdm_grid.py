@@ -3,12 +3,9 @@
 import logging
 
 from subslope.campaign import measure_cdm_grid
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     files = {}
     for scene, multiplier, path in snakemake.params.groups:

@@ -4,12 +4,9 @@ import logging
 
 from subslope.observations import load_hst
 from subslope.plotting import plot_hst_gallery
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     observations = load_hst(snakemake.params.folder)
     logging.info("loaded %d cutouts: %s", len(observations), [o.name for o in observations])

@@ -3,12 +3,9 @@
 import logging
 
 from subslope.plotting import plot_scene_examples_from_shard
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     shown = plot_scene_examples_from_shard(
         snakemake.input.shard,

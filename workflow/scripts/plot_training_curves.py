@@ -3,12 +3,9 @@
 import logging
 
 from subslope.campaign import plot_training_curves
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     plot_training_curves(snakemake.input.log_csv, snakemake.output.pdf[: -len(".pdf")],
                          run_name=snakemake.params.run_name)

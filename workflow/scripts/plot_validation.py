@@ -5,12 +5,9 @@ import logging
 import json
 
 from subslope.campaign import plot_validation
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     trend = plot_validation(
         list(snakemake.input.single),

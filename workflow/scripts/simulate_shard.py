@@ -5,12 +5,9 @@ import logging
 import torch
 
 from subslope.simulate import simulate_shard
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     torch.set_num_threads(snakemake.threads)
     multiplier = snakemake.wildcards.get("multiplier")

@@ -6,12 +6,9 @@ import os
 import torch
 
 from subslope.campaign import run_training
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     torch.set_num_threads(snakemake.threads)
     logging.info("checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir)

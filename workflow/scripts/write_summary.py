@@ -5,12 +5,9 @@ import logging
 import json
 
 from subslope.campaign import write_summary
+from subslope.logs import log_to_file
 
-logging.basicConfig(
-    filename=snakemake.log[0],
-    level=logging.INFO,
-    format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-)
+log_to_file(snakemake.log[0])
 try:
     inputs = snakemake.input
     trend = None
