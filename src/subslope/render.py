@@ -215,6 +215,14 @@ def _epl_kernel(settings: RenderSettings, device: torch.device):
 
 
 # --------------------------------------------------------------------------- populations
+def _select_systems(counts, idx) -> tuple[np.ndarray, np.ndarray]:
+    """Counts of systems ``idx`` of a ragged population and the flat indices of their members."""
+    counts_all = np.asarray(counts, dtype=np.int64)
+    off = np.concatenate([[0], np.cumsum(counts_all)])
+    sel = np.concatenate([np.arange(off[i], off[i + 1]) for i in idx]) if len(idx) else np.zeros(0, np.int64)
+    return counts_all[idx], sel
+
+
 _PAD = {"amp": 0.0, "gamma": 2.0, "e1": 0.0, "e2": 0.0, "x": 0.0, "y": 0.0,
         "r_s": 1.0, "alpha_rs": 0.0, "r_t": 1.0}
 _PROFILE_KEYS = {"epl": ("amp", "gamma", "e1", "e2", "x", "y"),
@@ -384,11 +392,8 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
     # lens-plane populations of this sub-batch
     sub_pop = None
     if not smooth and subhalos is not None:
-        counts_all = np.asarray(subhalos.counts, dtype=np.int64)
-        counts = counts_all[idx]
+        counts, sel = _select_systems(subhalos.counts, idx)
         if counts.sum() > 0:
-            off = np.concatenate([[0], np.cumsum(counts_all)])
-            sel = np.concatenate([np.arange(off[i], off[i + 1]) for i in idx])
             flat = {kk: (None if getattr(subhalos, kk, None) is None else np.asarray(getattr(subhalos, kk))[sel])
                     for kk in _PROFILE_KEYS[subhalos.profile]}
             sub_pop = _pack(subhalos.profile, flat, counts, n_chunk, dtype, device)
@@ -421,11 +426,8 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
     # line-of-sight planes
     planes: list[Plane] = []
     if not smooth and los is not None:
-        counts_all = np.asarray(los.counts, dtype=np.int64)
-        counts = counts_all[idx]
+        counts, sel = _select_systems(los.counts, idx)
         if counts.sum() > 0:
-            off = np.concatenate([[0], np.cumsum(counts_all)])
-            sel = np.concatenate([np.arange(off[i], off[i + 1]) for i in idx])
             sys_local = np.repeat(np.arange(b), counts)
             z_h = np.asarray(los.z, dtype=np.float64)[sel]
             bad = z_h >= zs[sys_local]

@@ -83,6 +83,13 @@ def _conv1(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
     return nn.Conv2d(cin, cout, 1, stride=stride, bias=False)
 
 
+def _shortcut(cin: int, cout: int, stride: int) -> nn.Module:
+    """Identity, or a strided 1×1 projection when the shape changes (ResNet v1)."""
+    if stride == 1 and cin == cout:
+        return nn.Identity()
+    return nn.Sequential(_conv1(cin, cout, stride), nn.BatchNorm2d(cout))
+
+
 class BasicBlock(nn.Module):
     """Two 3×3 convolutions with an identity (or 1×1 projection) shortcut."""
 
@@ -94,11 +101,7 @@ class BasicBlock(nn.Module):
         self.conv1, self.bn1 = _conv3(cin, planes, stride), nn.BatchNorm2d(planes)
         self.conv2, self.bn2 = _conv3(planes, cout), nn.BatchNorm2d(cout)
         self.act = nn.ReLU(inplace=True)
-        self.shortcut = (
-            nn.Sequential(_conv1(cin, cout, stride), nn.BatchNorm2d(cout))
-            if stride != 1 or cin != cout
-            else nn.Identity()
-        )
+        self.shortcut = _shortcut(cin, cout, stride)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.act(self.bn1(self.conv1(x)))
@@ -118,11 +121,7 @@ class Bottleneck(nn.Module):
         self.conv2, self.bn2 = _conv3(planes, planes, stride), nn.BatchNorm2d(planes)
         self.conv3, self.bn3 = _conv1(planes, cout), nn.BatchNorm2d(cout)
         self.act = nn.ReLU(inplace=True)
-        self.shortcut = (
-            nn.Sequential(_conv1(cin, cout, stride), nn.BatchNorm2d(cout))
-            if stride != 1 or cin != cout
-            else nn.Identity()
-        )
+        self.shortcut = _shortcut(cin, cout, stride)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.act(self.bn1(self.conv1(x)))
