@@ -46,24 +46,31 @@ F64 = torch.float64
 KNOBS: list[tuple[str, dict]] = [
     ("default", {}),
     ("dtype=float64", {"dtype": F64}),
+    ("population=direct", {"population": "direct"}),
+    ("split_tolerance=1e-5", {"split_tolerance": 1e-5}),
+    ("split_tolerance=5e-5", {"split_tolerance": 5e-5}),
+    ("split_tolerance=1e-4", {"split_tolerance": 1e-4}),
+    ("split_tolerance=3e-4", {"split_tolerance": 3e-4}),
+    ("split_spacing=2", {"split_spacing": 2}),
+    ("split_spacing=4", {"split_spacing": 4}),
+    ("split_spacing=5", {"split_spacing": 5}),
+    ("split_order=4", {"split_order": 4}),
+    ("split_order=8", {"split_order": 8}),
     ("n_terms=4", {"n_terms": 4}),
     ("n_terms=6", {"n_terms": 6}),
     ("n_terms=10", {"n_terms": 10}),
     ("n_terms=14", {"n_terms": 14}),
     ("n_terms_main=8", {"n_terms_main": 8}),
-    ("n_terms_main=10", {"n_terms_main": 10}),
     ("n_terms_main=20", {"n_terms_main": 20}),
-    ("chunk=4", {"chunk_members": 4}),
-    ("chunk=16", {"chunk_members": 16}),
-    ("chunk=64", {"chunk_members": 64}),
+    ("population=direct, chunk=64", {"population": "direct", "chunk_members": 64}),
     ("compile=off", {"compile": "off"}),
-    ("compile=off, chunk=64", {"compile": "off", "chunk_members": 64}),
+    ("compile=off, population=direct", {"compile": "off", "population": "direct"}),
     ("convolution=direct", {"convolution": "direct"}),
     ("supersample=2", {"supersample": 2}),
     ("supersample=3", {"supersample": 3}),
-    ("n_terms=6, n_terms_main=10", {"n_terms": 6, "n_terms_main": 10}),
-    ("n_terms=6, chunk=16", {"n_terms": 6, "chunk_members": 16}),
-    ("float64, n_terms=14, n_terms_main=20", {"dtype": F64, "n_terms": 14, "n_terms_main": 20}),
+    ("n_terms=6, split_tolerance=5e-5", {"n_terms": 6, "split_tolerance": 5e-5}),
+    ("float64, population=direct, n_terms=14, n_terms_main=20",
+     {"dtype": F64, "population": "direct", "n_terms": 14, "n_terms_main": 20}),
 ]
 INTERP = [("source_interpolation=bilinear (default)", {}),
           ("source_interpolation=bicubic", {"source_interpolation": "bicubic"}),
@@ -72,18 +79,13 @@ INTERP = [("source_interpolation=bilinear (default)", {}),
 
 def ref_of(settings: R.RenderSettings) -> R.RenderSettings:
     return dataclasses.replace(settings, dtype=F64, n_terms=30, n_terms_main=30, compile="off", chunk_members=16,
-                               convolution="direct", source_interpolation=settings.source_interpolation)
+                               convolution="direct", population="direct",
+                               source_interpolation=settings.source_interpolation)
 
 
 def fresh_compile() -> None:
-    """Each setting gets its own torch.compile of the EPL chunk kernel.
-
-    subslope.render keeps one compiled callable per device; every new specialisation
-    (dtype, n_terms, chunk width, number of points) is a dynamo recompile, and after
-    ``torch._dynamo.config.recompile_limit`` (8) of them the fullgraph compile fails
-    and the renderer falls back to eager for the rest of the process. A sweep hits
-    that limit, so the benchmark resets the compile cache between settings.
-    """
+    """Each setting gets its own torch.compile of the population kernels, so that no
+    setting is timed with graphs (or a recompile-limit fallback) left by another."""
     torch._dynamo.reset()
     R._COMPILED.clear()
     R._COMPILE_FAILED.clear()

@@ -92,9 +92,10 @@ def make_batch(n_img: int, n_sub: int, with_los: bool, seed: int, source: str = 
 
 
 def reference_settings(settings: R.RenderSettings) -> R.RenderSettings:
-    """float64, n_terms = n_terms_main = 30, eager; same grid and supersampling."""
+    """float64, n_terms = n_terms_main = 30, eager, direct population sums; same grid
+    and supersampling."""
     return dataclasses.replace(settings, dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off",
-                               chunk_members=64)
+                               chunk_members=64, population="direct")
 
 
 def image_errors(img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:

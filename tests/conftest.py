@@ -27,6 +27,15 @@ def shared_data_dir() -> Path:
     return Path(env) if env else (REPO_ROOT.parent / "shared" / "data")
 
 
+@pytest.fixture
+def one_thread():
+    """Run the test on one torch thread (timing-independent numerics, fair to the machine)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def pytest_collection_modifyitems(config, items):
     has_cuda = torch.cuda.is_available()
     has_lenstronomy = importlib.util.find_spec("lenstronomy") is not None

@@ -30,17 +30,12 @@ MAX_SIGMA, REL_L2 = 0.1, 1e-3
 DEFAULT = R.RenderSettings(device="cpu")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _reference(s: R.RenderSettings) -> R.RenderSettings:
     return dataclasses.replace(s, dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off",
-                               chunk_members=16, convolution="direct")
+                               chunk_members=16, convolution="direct", population="direct")
 
 
 # (preset, N_sub, LoS, label γ, seed, settings overrides)

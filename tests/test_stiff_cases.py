@@ -17,20 +17,15 @@ COARSE = R.RenderSettings(npix=40, pixel_scale=0.1, device="cpu", dtype=torch.fl
                           chunk_members=64)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _record_sheets(monkeypatch):
     seen = []
     orig = R._population_pass
 
-    def rec(pop, x, y, settings, kernel, n_pix):
-        out = orig(pop, x, y, settings, kernel, n_pix)
+    def rec(*args, **kwargs):
+        out = orig(*args, **kwargs)
         seen.append(float(out[2][0, 0]))
         return out
 

@@ -68,8 +68,8 @@ def sheet_off():
     """Within the block, rendered subhalo populations carry no negative sheet (diagnostic)."""
     orig = R._population_pass
 
-    def no_sheet(pop, x, y, settings, kernel, n_pix):
-        ax, ay, k = orig(pop, x, y, settings, kernel, n_pix)
+    def no_sheet(pop, x, y, *args, **kwargs):
+        ax, ay, k = orig(pop, x, y, *args, **kwargs)
         return ax - k * x, ay - k * y, torch.zeros_like(k)
 
     R._population_pass = no_sheet

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -117,8 +118,16 @@ def _default_cosmo():
     return Planck18
 
 
+_COSMO_KEYS: dict[int, tuple[Any, str]] = {}
+
+
 def _cosmo_key(cosmo) -> str:
-    return f"{type(cosmo).__name__}:{cosmo!r}"
+    """Cache key of a cosmology: its repr (slow for astropy objects), memoised per object."""
+    hit = _COSMO_KEYS.get(id(cosmo))
+    if hit is None or hit[0] is not cosmo:
+        hit = (cosmo, f"{type(cosmo).__name__}:{cosmo!r}")
+        _COSMO_KEYS[id(cosmo)] = hit
+    return hit[1]
 
 
 def comoving_distance(z: np.ndarray | float, cosmo=None) -> np.ndarray:

@@ -27,15 +27,21 @@ evaluated at all. Every evaluated stage increments :data:`STAGE_COUNTS` (a
 :class:`collections.Counter`, reset with :func:`reset_stage_counts`), and the stage
 functions are called through this module's globals, so tests can also monkeypatch them.
 
-Determinism: rendering is batch-invariant (image ``i`` alone == image ``i`` in a batch,
-bit for bit). On CPU the images of a batch are rendered one at a time; on other devices
-in sub-batches, where all member sums are fixed pairwise trees of element-wise adds
-(:mod:`subslope.render_kernels`), chunk widths do not depend on the batch, inactive
-planes are exact no-ops and the PSF is applied image by image.
+Population passes (subhalos, LoS halos) run on member tables and fused pair kernels
+(:mod:`subslope.pair_kernels`, ``torch.compile``'d on CPU); large populations use the
+near/far split of :mod:`subslope.nearfar` (``RenderSettings.population``).
+
+Determinism: on CPU the images of a batch are rendered one at a time, so image ``i``
+alone == image ``i`` in a batch, bit for bit (all member counts, chunk widths and
+split radii are per image). On other devices images are rendered in sub-batches
+padded to the largest population: there an image alone and in a batch agree to float
+rounding (member sums are compiled reductions whose order may depend on the padded
+width); inactive planes are exact no-ops and the PSF is applied image by image.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 from collections import Counter
@@ -52,12 +58,11 @@ from subslope.light.pixelated import pixelated_light
 from subslope.light.sersic import multi_sersic_from_magnitude, sersic_ellipse_from_magnitude
 from subslope.population import pack_ragged
 from subslope.profiles.epl import epl_deflection, theta_e_to_amp
+from subslope.nearfar import GridBlock, split_pass
+from subslope.pair_kernels import circle_peaks, direct_sums, far_sums, member_table, near_tile_sums
 from subslope.profiles.multipole import multipole_deflection
-from subslope.profiles.nfw import nfw_convergence, nfw_deflection
 from subslope.profiles.shear import shear_deflection
-from subslope.profiles.tnfw import tnfw_convergence, tnfw_deflection
 from subslope.raytrace import Plane, multi_plane_ray_shoot
-from subslope.render_kernels import epl_chunk, tree_sum_last, tree_sum_members
 
 __all__ = [
     "RenderSettings",
@@ -103,10 +108,21 @@ class RenderSettings:
     dtype, device : torch dtype; device None → 'cuda' if available else 'cpu' (at call time).
     n_terms : hypergeometric-series terms of the subhalo / LoS EPL deflections.
     n_terms_main : series terms of the main-lens EPL.
-    max_elements : memory budget: elements of one broadcast (b, w, P) intermediate;
-        sets the sub-batch size off-CPU and the auto chunk width.
-    chunk_members : members per population chunk (rounded down to a power of two);
+    max_elements : memory budget: members × points of one kernel call (a (b, N, P)
+        intermediate in eager mode); sets the sub-batch size off-CPU and the auto
+        chunk width.
+    chunk_members : members per direct kernel call (rounded down to a power of two);
         None → :func:`chunk_width` (from ``max_elements`` and P only, never from B).
+    population : 'auto' | 'split' | 'direct': how a population's deflection is summed.
+        'direct' evaluates every member at every point; 'split' uses the near/far
+        split of :mod:`subslope.nearfar` (exact near field within each member's radius
+        r_c, far field interpolated from a node mesh); 'auto' = 'split' for
+        populations of at least ``split_min_members`` members on a plane, else 'direct'.
+    split_spacing : node spacing h of the far-field mesh, in pixels.
+    split_order : Lagrange interpolation points per axis of the far field (4, 6, 8).
+    split_tolerance : far-field interpolation error allowed per member (arcsec); sets
+        each member's r_c (:func:`subslope.nearfar.member_rungs`).
+    split_min_members : smallest population that 'auto' splits.
     source_interpolation : 'bilinear' | 'bicubic' | 'nearest' for pixelated sources.
     convolution : 'auto' | 'direct' | 'fft' (:func:`subslope.instrument.convolve`).
     zero_point : AB magnitude of 1 e⁻/s.
@@ -127,6 +143,11 @@ class RenderSettings:
     zero_point: float = 25.127
     chunk_members: int | None = None
     compile: str = "auto"
+    population: str = "auto"
+    split_spacing: int = 3
+    split_order: int = 6
+    split_tolerance: float = 3e-5
+    split_min_members: int = 64
 
     def __post_init__(self) -> None:
         for name in ("npix", "supersample", "n_terms", "n_terms_main", "max_elements"):
@@ -144,6 +165,16 @@ class RenderSettings:
                              f"'nearest', got {self.source_interpolation!r}")
         if self.convolution not in ("auto", "direct", "fft"):
             raise ValueError(f"RenderSettings.convolution must be 'auto', 'direct' or 'fft', got {self.convolution!r}")
+        if self.population not in ("auto", "split", "direct"):
+            raise ValueError(f"RenderSettings.population must be 'auto', 'split' or 'direct', got {self.population!r}")
+        if not (isinstance(self.split_tolerance, (int, float)) and self.split_tolerance > 0):
+            raise ValueError(f"RenderSettings.split_tolerance must be > 0 arcsec, got {self.split_tolerance!r}")
+        if self.split_order not in (4, 6, 8):
+            raise ValueError(f"RenderSettings.split_order must be 4, 6 or 8, got {self.split_order!r}")
+        for name, lo, hi in (("split_spacing", 1, 64), ("split_min_members", 1, 1 << 30)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"RenderSettings.{name} must be an int in [{lo}, {hi}], got {v!r}")
         if not self.dtype.is_floating_point:
             raise ValueError(f"RenderSettings.dtype must be a floating dtype, got {self.dtype}")
 
@@ -167,51 +198,72 @@ def _pow2_floor(n: int) -> int:
 
 
 
-def chunk_width(settings: RenderSettings, n_points: int) -> int:
-    """Members per population chunk: ``chunk_members`` or the largest power of two
-    ≤ ``max_elements / (32·P)`` (8 for the 100×100 default), clamped to [1, 256].
-    A function of the settings and the number of points only (batch invariance)."""
+def chunk_width(settings: RenderSettings, n_points: int, compiled: bool = True) -> int:
+    """Members per direct kernel call: ``chunk_members``, or the largest power of two
+    ≤ ``max_elements / P`` (compiled kernels: no (N, P) intermediate is stored) or
+    ≤ ``max_elements / (32·P)`` (eager: about 32 live intermediates), clamped to
+    [1, 4096]. A function of the settings and the number of points only (batch
+    invariance)."""
     if settings.chunk_members is not None:
         return _pow2_floor(settings.chunk_members)
-    return max(1, min(256, _pow2_floor(settings.max_elements // (32 * max(1, n_points)))))
+    per = max(1, n_points) * (1 if compiled else 32)
+    return max(1, min(4096, _pow2_floor(settings.max_elements // per)))
 
 
 # ----------------------------------------------------------------------------- kernels
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
 _MAX_KERNEL_GRAPHS = 64
+_KERNEL_FUNCTIONS = {"direct": direct_sums, "far": far_sums, "near": near_tile_sums, "peaks": circle_peaks}
 
 
-def _epl_kernel(settings: RenderSettings, device: torch.device):
-    """The EPL chunk kernel: torch.compile'd (optional) or eager :func:`epl_chunk`."""
-    want = settings.compile == "on" or (settings.compile == "auto" and device.type == "cpu")
-    if not want:
-        return epl_chunk
-    if device.type == "cpu" and shutil.which("gcc") is None and shutil.which("cc") is None:
-        return epl_chunk
-    key = device.type
+@dataclass(frozen=True)
+class _Kernels:
+    """The population kernels of one render call (compiled or eager)."""
+
+    direct: Any
+    far: Any
+    near: Any
+    peaks: Any
+    compiled: bool
+
+
+def _compiled_or_eager(name: str, device: torch.device):
+    fn = _KERNEL_FUNCTIONS[name]
+    key = (device.type, name)
     if key in _COMPILE_FAILED:
-        return epl_chunk
+        return fn
     if key not in _COMPILED:
-        # One graph is compiled per (dtype, n_terms, chunk width, points, with_kappa);
-        # dynamo's default of 8 graphs per function would silently fall back to eager
-        # (3-4x slower) in a process that renders more settings than that.
+        # dynamic shapes: one graph per (profile, table rows, dtype), whatever the
+        # member and point counts; dynamo's default of 8 graphs per function would
+        # silently fall back to eager in a process that renders many settings.
         dynamo_config = torch._dynamo.config
         dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, _MAX_KERNEL_GRAPHS)
-        _COMPILED[key] = torch.compile(epl_chunk, dynamic=False, fullgraph=True)
+        _COMPILED[key] = torch.compile(fn, dynamic=True, fullgraph=True)
     compiled = _COMPILED[key]
 
-    def run(*args, **kwargs):
+    def run(*args):
         if key in _COMPILE_FAILED:
-            return epl_chunk(*args, **kwargs)
+            return fn(*args)
         try:
-            return compiled(*args, **kwargs)
+            return compiled(*args)
         except Exception as exc:  # pragma: no cover - depends on the toolchain
-            log.warning("torch.compile of the EPL chunk kernel failed (%s); using eager", exc)
+            log.warning("torch.compile of the %s population kernel failed (%s); using eager", name, exc)
             _COMPILE_FAILED.add(key)
-            return epl_chunk(*args, **kwargs)
+            return fn(*args)
 
     return run
+
+
+def _kernels(settings: RenderSettings, device: torch.device) -> _Kernels:
+    """Population kernels: torch.compile'd (``compile`` 'on', or 'auto' on a CPU with a
+    C compiler) or eager (:mod:`subslope.pair_kernels`)."""
+    want = settings.compile == "on" or (settings.compile == "auto" and device.type == "cpu")
+    if want and device.type == "cpu" and shutil.which("gcc") is None and shutil.which("cc") is None:
+        want = False
+    if not want:
+        return _Kernels(direct_sums, far_sums, near_tile_sums, circle_peaks, False)
+    return _Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "far", "near", "peaks")), True)
 
 
 # --------------------------------------------------------------------------- populations
@@ -232,19 +284,16 @@ _PROFILE_KEYS = {"epl": ("amp", "gamma", "e1", "e2", "x", "y"),
 
 @dataclass
 class _Pop:
-    """A padded population of a sub-batch: (b, N) tensors, N a multiple of ``width``."""
+    """A padded population of a sub-batch: its member table ``(b, M, N)``
+    (:func:`subslope.pair_kernels.member_table`; padded members have zero amplitude)."""
 
     profile: str
-    params: dict[str, Tensor]
-    width: int
+    table: Tensor
     counts: np.ndarray
 
 
-def _pack(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_chunk: int,
-          dtype, device) -> _Pop:
-    n_max = int(counts.max()) if counts.size else 0
-    width = n_chunk  # fixed: one compiled shape; zero members add exact zeros
-    n_pad = max(width, -(-n_max // width) * width)
+def _pack(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms: int, dtype, device) -> _Pop:
+    n_pad = max(1, int(counts.max()) if counts.size else 0)
     params = {}
     for key in _PROFILE_KEYS[profile]:
         if flat.get(key) is None:
@@ -252,47 +301,68 @@ def _pack(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_chunk
         arr, _ = pack_ragged(np.asarray(flat[key], dtype=np.float64), counts=counts, n_max=n_pad,
                              fill=_PAD[key])
         params[key] = torch.as_tensor(arr, dtype=dtype, device=device)
-    return _Pop(profile, params, width, counts)
+    return _Pop(profile, member_table(profile, params, n_terms), counts)
 
 
-def _population_pass(pop: _Pop, x: Tensor, y: Tensor, settings: RenderSettings, kernel,
-                     n_pix: int) -> tuple[Tensor, Tensor, Tensor]:
+def _flat_table(profile: str, flat: dict[str, np.ndarray], n_terms: int, dtype, device) -> Tensor:
+    """Member table ``(M, n + 1)`` of ``n`` members given as flat arrays, plus one padding
+    member (zero amplitude) as the last column."""
+    params = {}
+    for key in _PROFILE_KEYS[profile]:
+        if flat.get(key) is None:
+            raise ValueError(f"population of profile {profile!r} has no {key!r} values")
+        vals = np.append(np.asarray(flat[key], dtype=np.float64), _PAD[key])
+        params[key] = torch.as_tensor(vals, dtype=dtype, device=device)[None, :]
+    return member_table(profile, params, n_terms)[0]
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    """Layout of the points of a render call: regular grid blocks (sub-pixels, then
+    pixel centres when supersampled), the block of pixel centres, the undeflected
+    grid ``(1, P)`` and whether the rays on this plane are displaced from it."""
+
+    blocks: tuple[GridBlock, ...]
+    sheet_block: int
+    base: tuple[Tensor, Tensor]
+    displaced: bool = True
+
+
+def _use_split(pop: _Pop, settings: RenderSettings, geometry: _Geometry | None) -> bool:
+    if geometry is None or settings.population == "direct":
+        return False
+    return settings.population == "split" or int(pop.counts.max()) >= settings.split_min_members
+
+
+def _population_pass(pop: _Pop, x: Tensor, y: Tensor, settings: RenderSettings, kernels: _Kernels,
+                     n_pix: int, geometry: _Geometry | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Summed deflection at (x, y) ``(b, P_all)`` and the negative-sheet κ ``(b, 1)``
-    (minus the mean summed κ over the last ``n_pix`` points, the pixel-centre rays)."""
-    xe, ye = x[:, None, :], y[:, None, :]
+    (minus the mean summed κ over the last ``n_pix`` points, the pixel-centre rays).
+
+    With ``geometry`` and a population large enough (``settings.population``), the
+    near/far split of :mod:`subslope.nearfar`; otherwise the direct sum in chunks of
+    :func:`chunk_width` members.
+    """
     n_all = x.shape[-1]
-    b = next(iter(pop.params.values())).shape[0]
-    w = pop.width
+    if _use_split(pop, settings, geometry):
+        _stage("split")
+        out = split_pass(pop.table, pop.profile, x, y, list(geometry.blocks), geometry.sheet_block,
+                         spacing=settings.split_spacing * settings.pixel_scale, order=settings.split_order,
+                         tolerance=settings.split_tolerance, displaced=geometry.displaced, base=geometry.base,
+                         kernels=(kernels.far, kernels.near, kernels.peaks), max_elements=settings.max_elements)
+        ax, ay, k_sum = out
+        k_sheet = -(k_sum / n_pix)[:, None]
+        return ax + k_sheet * x, ay + k_sheet * y, k_sheet
+    w = chunk_width(settings, n_all, kernels.compiled)
+    n = pop.table.shape[-1]
     ax = ay = kap = None
-    n_max = int(pop.counts.max()) if pop.counts.size else 0
-    for start in range(0, n_max, w):  # chunks past every system's count hold only padding
-        # fresh (b, w, 1) copies: slices of the padded (b, N_max) arrays carry N_max in their
-        # strides (also for b = 1, which .contiguous() keeps), and the compiled kernel would
-        # recompile for every population size
-        p = {k: v.new_empty((b, w, 1)).copy_(v[:, start:start + w, None])
-             for k, v in pop.params.items()}
-        if pop.profile == "epl":
-            dax, day, dk = kernel(xe, ye, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"],
-                                  settings.n_terms, True)
-        else:
-            if pop.profile == "nfw":
-                fa = nfw_deflection(xe, ye, p["r_s"], p["alpha_rs"], p["x"], p["y"])
-                fk = nfw_convergence(xe, ye, p["r_s"], p["alpha_rs"], p["x"], p["y"])
-            else:
-                fa = tnfw_deflection(xe, ye, p["r_s"], p["alpha_rs"], p["r_t"], p["x"], p["y"])
-                fk = tnfw_convergence(xe, ye, p["r_s"], p["alpha_rs"], p["r_t"], p["x"], p["y"])
-            shape = (b, w, n_all)
-            dax = tree_sum_members(torch.broadcast_to(fa[0], shape))
-            day = tree_sum_members(torch.broadcast_to(fa[1], shape))
-            dk = tree_sum_members(torch.broadcast_to(fk, shape))
+    for start in range(0, n, w):
+        dax, day, dk = kernels.direct(x, y, pop.table[:, :, start:start + w].contiguous(), pop.profile, True)
         if ax is None:
             ax, ay, kap = dax, day, dk
         else:
             ax, ay, kap = ax + dax, ay + day, kap + dk
-    if ax is None:
-        z = torch.zeros((b, n_all), dtype=x.dtype, device=x.device)
-        return z, z, torch.zeros((b, 1), dtype=x.dtype, device=x.device)
-    k_sheet = -(tree_sum_last(kap[:, n_all - n_pix:]) / n_pix)[:, None]
+    k_sheet = -(kap[:, n_all - n_pix:].sum(-1) / n_pix)[:, None]
     return ax + k_sheet * x, ay + k_sheet * y, k_sheet
 
 
@@ -376,7 +446,8 @@ def _bin(img: Tensor, k: int) -> Tensor:
 # ------------------------------------------------------------------------------- render
 def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSettings,
                   sources: PixelatedSources | None, subhalos, los, smooth: bool,
-                  grid: tuple[Tensor, Tensor, int], device, kernel, n_chunk: int) -> Tensor:
+                  grid: tuple[Tensor, Tensor, int], device, kernels: _Kernels,
+                  geometry: _Geometry) -> Tensor:
     dtype = settings.dtype
     k = settings.supersample
     xg, yg, n_pix = grid
@@ -396,14 +467,14 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
         if counts.sum() > 0:
             flat = {kk: (None if getattr(subhalos, kk, None) is None else np.asarray(getattr(subhalos, kk))[sel])
                     for kk in _PROFILE_KEYS[subhalos.profile]}
-            sub_pop = _pack(subhalos.profile, flat, counts, n_chunk, dtype, device)
+            sub_pop = _pack(subhalos.profile, flat, counts, settings.n_terms, dtype, device)
 
     lens_amp = theta_e_to_amp(par("theta_e"), par("gamma_ml"))
     lens = {kk: par(kk) for kk in ("gamma_ml", "lens_e1", "lens_e2", "lens_x", "lens_y")}
     shear = {kk: par(kk) for kk in _GROUPS["shear"]} if _has(macro, "shear") else None
     mpole = {kk: par(kk) for kk in _GROUPS["multipoles"]} if _has(macro, "multipoles") else None
 
-    def lens_plane(tx: Tensor, ty: Tensor) -> tuple[Tensor, Tensor]:
+    def lens_plane(tx: Tensor, ty: Tensor, displaced: bool = True) -> tuple[Tensor, Tensor]:
         _stage("main_lens")
         ax, ay = epl_deflection(tx, ty, lens_amp, lens["gamma_ml"], lens["lens_e1"], lens["lens_e2"],
                                 lens["lens_x"], lens["lens_y"], n_terms=settings.n_terms_main,
@@ -419,7 +490,8 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
                 ax, ay = ax + mx, ay + my
         if sub_pop is not None:
             _stage("subhalos")
-            px, py, _ = _population_pass(sub_pop, tx, ty, settings, kernel, n_pix)
+            geo = geometry if displaced else dataclasses.replace(geometry, displaced=False)
+            px, py, _ = _population_pass(sub_pop, tx, ty, settings, kernels, n_pix, geo)
             ax, ay = ax + px, ay + py
         return ax, ay
 
@@ -436,17 +508,23 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
                 raise ValueError(f"los.z = {z_h[j]} is not in front of z_source = {zs[sys_local[j]]} "
                                  f"of system {int(idx[sys_local[j]])}")
             front, back = [], []
+            flat = {kk: (None if getattr(los, kk, None) is None else np.asarray(getattr(los, kk))[sel])
+                    for kk in _PROFILE_KEYS[los.profile]}
+            # one member table for every LoS halo of the sub-batch (plus a zero-amplitude
+            # column for padding); each slice plane gathers its columns
+            table_all = _flat_table(los.profile, flat, settings.n_terms, dtype, device)
+            n_los = table_all.shape[-1] - 1
             for zu in np.unique(z_h):
-                on = z_h == zu
+                on = np.flatnonzero(z_h == zu)
                 c_slice = np.bincount(sys_local[on], minlength=b)
-                flat = {kk: (None if getattr(los, kk, None) is None else np.asarray(getattr(los, kk))[sel][on])
-                        for kk in _PROFILE_KEYS[los.profile]}
-                pop = _pack(los.profile, flat, c_slice, n_chunk, dtype, device)
+                cols, _ = pack_ragged(on, counts=c_slice, n_max=max(1, int(c_slice.max())), fill=n_los)
+                pop = _Pop(los.profile, table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2),
+                           c_slice)
                 has = c_slice > 0
 
                 def deflect(tx, ty, pop=pop):
                     _stage("los")
-                    ax, ay, _ = _population_pass(pop, tx, ty, settings, kernel, n_pix)
+                    ax, ay, _ = _population_pass(pop, tx, ty, settings, kernels, n_pix, geometry)
                     return ax, ay
 
                 a_front, a_back = has & (zu < zl), has & (zu >= zl)
@@ -461,7 +539,7 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
         bx, by = multi_plane_ray_shoot(xg.expand(b, -1), yg.expand(b, -1), planes, zs)
     else:
         _stage("single_plane")
-        ax, ay = lens_plane(xg.expand(b, -1), yg.expand(b, -1))
+        ax, ay = lens_plane(xg.expand(b, -1), yg.expand(b, -1), displaced=False)
         bx, by = xg - ax, yg - ay
 
     n_ss = (settings.npix * k) ** 2
@@ -545,16 +623,19 @@ def _render(macro, psf, settings: RenderSettings, sources, subhalos, los, smooth
         xg = torch.cat([xg, xp.reshape(1, -1)], 1)
         yg = torch.cat([yg, yp.reshape(1, -1)], 1)
     n_all = xg.shape[1]
-    n_chunk = chunk_width(settings, n_all)
-    kernel = _epl_kernel(settings, device)
+    kernels = _kernels(settings, device)
+    blocks = [GridBlock(0, settings.npix * k, settings.pixel_scale / k)]
+    if k > 1:
+        blocks.append(GridBlock(blocks[0].m ** 2, settings.npix, settings.pixel_scale))
+    geometry = _Geometry(tuple(blocks), len(blocks) - 1, (xg, yg))
     if device.type == "cpu" and _PER_IMAGE_ON_CPU:
         groups = [np.array([i]) for i in range(n)]
     else:
-        bs = max(1, settings.max_elements // (n_chunk * n_all))
+        bs = max(1, settings.max_elements // (chunk_width(settings, n_all, kernels.compiled) * n_all))
         groups = [np.arange(s, min(n, s + bs)) for s in range(0, n, bs)]
     with torch.no_grad():
         out = [_render_group(g, macro, psf_t, settings, sources, subhalos, los, smooth,
-                             (xg, yg, n_pix), device, kernel, n_chunk) for g in groups]
+                             (xg, yg, n_pix), device, kernels, geometry) for g in groups]
     return torch.cat(out, 0)
 
 

@@ -1,0 +1,457 @@
+r"""Near/far split of a population pass: exact near field, interpolated far field.
+
+A population of ``N`` members (subhalos) deflects the rays of ``P`` points (pixels).
+The direct sum costs ``N·P`` pair evaluations. Each member's deflection is split with
+the partition of unity of :func:`subslope.pair_kernels.split_weight`:
+
+.. math::
+
+    \alpha_i = \underbrace{\alpha_i\,W(|x - c_i| / r_{c,i})}_{\text{far: smooth everywhere}}
+             + \underbrace{\alpha_i\,[1 - W(|x - c_i| / r_{c,i})]}_{\text{near: zero beyond } r_{c,i}},
+
+the particle–particle/particle–mesh idea of N-body codes (Hockney & Eastwood 1988,
+ch. 8) with a compactly supported near part.
+
+* **Far field** ``Σ_i α_i W_i`` (and ``Σ_i κ_i W_i``) is smooth, so it is evaluated at
+  the rays of a coarse subset of the points only (*nodes*: every ``S``-th point of each
+  regular image-plane grid, both edges included; ``S·step = h``) and interpolated to
+  all points by tensor-product Lagrange interpolation of order ``p`` in the grid
+  indices (a separable ``L F Lᵀ`` product). The rays are a smooth function of the
+  image-plane position (the identity for one plane; the foreground line-of-sight
+  deflections in a multi-plane scene), so the far field is smooth in those indices
+  too. Cost: ``N · (m/S)²`` pairs.
+* **Split radius per member.** The interpolation error of one member's far field is
+  ``≤ C_p(ρ)·max|α_i(r_c)|`` with ``ρ = r_c/h`` (:data:`ERROR_CONSTANTS`, measured by
+  ``benchmarks/split_constants.py``). Each member gets the smallest ``ρ`` of
+  :data:`RHO_LADDER` that meets ``split_tolerance`` (:func:`member_rungs`): the many
+  small subhalos get small near zones, the few massive ones large ones.
+* **Near field** ``Σ_i α_i (1 − W_i)`` is exact: the grid is cut into ``TILE × TILE``
+  tiles and each tile sums the members whose near zone can reach it (one fused
+  reduction per group of tiles, :func:`subslope.pair_kernels.near_tile_sums`); points
+  beyond a member's ``r_c`` get exactly zero from it. The image-plane position of a
+  member is found by two fixed-point steps ``θ ← c_i + d(θ)`` (``d``: the rays'
+  displacement from the regular grid). With displaced rays the reach is widened by the
+  largest displacement gradient ``G`` over the tiles around the member
+  (``|x_j − c_i| ≥ (1 − G)|θ_j − θ_i|``); a member with ``G >`` :data:`MAX_DISTORTION`
+  (a cuspy foreground halo nearby) reaches every tile.
+* **Rough ray maps.** Where the rays are strongly distorted (a tile's displacement
+  gradient above :data:`SMOOTH_DISTORTION`, near a foreground halo's centre), the far
+  field is evaluated at every point of the tile instead of interpolated.
+
+The negative-sheet convergence needs ``Σ_pixels Σ_i κ_i`` at the pixel-centre rays: the
+far part is the interpolation weights' column sums applied to the node values, the near
+part the sum of the tile terms on the pixel-centre grid.
+
+Errors of every setting (node spacing, order, tolerance) are measured against the
+direct sum in ``docs/performance.md`` and held to the image budget by
+``tests/test_accuracy_budget.py``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["GridBlock", "RHO_LADDER", "ERROR_CONSTANTS", "EDGE_ERROR_CONSTANTS", "interpolation_matrix", "node_indices", "member_rungs",
+           "split_pass", "TILE"]
+
+
+@dataclass(frozen=True)
+class GridBlock:
+    """A regular ``m × m`` image-plane grid stored row-major at ``[offset, offset + m²)``
+    of the point axis: point ``(j, i)`` (row ↔ y) sits at ``((i − (m−1)/2)·step,
+    (j − (m−1)/2)·step)`` arcsec before any foreground deflection."""
+
+    offset: int
+    m: int
+    step: float
+
+
+@lru_cache(maxsize=64)
+def node_indices(m: int, spacing: int) -> tuple[int, ...]:
+    """Grid indices of the nodes along an axis of ``m`` points: both ends and a
+    near-uniform spacing ≤ ``spacing`` in between."""
+    if m <= 1:
+        return (0,)
+    n = max(2, math.ceil((m - 1) / spacing) + 1)
+    return tuple(int(v) for v in np.unique(np.rint(np.linspace(0, m - 1, n)).astype(int)))
+
+
+@lru_cache(maxsize=64)
+def _interpolation_matrix_np(m: int, nodes: tuple[int, ...], order: int) -> np.ndarray:
+    t = np.asarray(nodes, dtype=np.float64)
+    n = t.size
+    p = min(order, n)
+    L = np.zeros((m, n))
+    for i in range(m):
+        # the p nodes around i (centred stencil, shifted at the edges)
+        k = int(np.searchsorted(t, i, side="right")) - p // 2
+        k = min(max(k, 0), n - p)
+        st = t[k:k + p]
+        for a in range(p):
+            others = np.delete(st, a)
+            L[i, k + a] = np.prod((i - others) / (st[a] - others))
+    return L
+
+
+def interpolation_matrix(m: int, nodes: tuple[int, ...], order: int, dtype, device) -> Tensor:
+    """Lagrange interpolation matrix ``(m, len(nodes))`` of order ``order`` (points per
+    stencil) from node indices to every grid index (exact at the nodes; reproduces
+    polynomials of degree ``order − 1``)."""
+    return torch.as_tensor(_interpolation_matrix_np(m, nodes, order), dtype=dtype, device=device)
+
+
+#: Ladder of split radii ρ = r_c / h (in node spacings) a member may get.
+RHO_LADDER = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
+#: ``C_p(ρ)`` per interpolation order ``p``: bound on the far field's interpolation
+#: error of one member divided by its largest ``|α|`` on the circle ``r = r_c``, on
+#: :data:`RHO_LADDER`, for a member whose zone and stencils stay inside the grid
+#: (``benchmarks/split_constants.py``: worst case over random EPL, NFW and tNFW
+#: members, × 2).
+ERROR_CONSTANTS = {
+    4: (1.1, 0.69, 0.58, 0.28, 0.13, 0.035, 0.013, 0.0031, 0.001, 0.00022, 7e-05),
+    6: (1, 0.75, 0.63, 0.24, 0.09, 0.019, 0.006, 0.0011, 0.00032, 8.1e-05, 3.1e-05),
+    8: (0.95, 0.78, 0.64, 0.21, 0.071, 0.014, 0.0041, 0.00073, 0.00025, 6.8e-05, 2.6e-05),
+}
+#: The same for members anywhere on the 100 × 100 image, edges included (one-sided
+#: stencils at the edges are less accurate).
+EDGE_ERROR_CONSTANTS = {
+    4: (1.2, 0.69, 0.75, 0.35, 0.17, 0.046, 0.017, 0.004, 0.0014, 0.00031, 0.00011),
+    6: (1.6, 0.93, 1.1, 0.61, 0.25, 0.057, 0.019, 0.0036, 0.0011, 0.0002, 5.7e-05),
+    8: (2.9, 3.5, 3.1, 1.2, 0.34, 0.046, 0.0097, 0.0029, 0.0014, 0.0004, 0.00016),
+}
+
+
+def _live(table: Tensor, profile: str) -> Tensor:
+    """Members that are not padding (non-zero amplitude row), ``(b, N)`` bool."""
+    from subslope.pair_kernels import AMPLITUDE_ROW
+
+    return table[:, AMPLITUDE_ROW[profile], :] != 0
+
+
+#: Side of the near-field tiles, in grid points.
+TILE = 8
+
+
+def _image_position(cx: Tensor, cy: Tensor, blk: GridBlock, dx: Tensor | None, dy: Tensor | None):
+    """Continuous grid coordinates ``(v, u)`` ``(b, N)`` (row, column) of the image-plane
+    position of each member: ``θ = c + d(θ)`` by two fixed-point steps with ``d`` the
+    rays' displacement from the regular grid (nearest point), or ``θ = c``."""
+    half = (blk.m - 1) / 2.0
+    tx, ty = cx, cy
+    if dx is not None:
+        for _ in range(2):
+            j = torch.round(ty / blk.step + half).clamp(0, blk.m - 1).to(torch.long)
+            i = torch.round(tx / blk.step + half).clamp(0, blk.m - 1).to(torch.long)
+            flat = j * blk.m + i
+            tx = cx + torch.gather(dx, 1, flat)
+            ty = cy + torch.gather(dy, 1, flat)
+    return ty / blk.step + half, tx / blk.step + half
+
+
+def _tile_distortion(dx: Tensor, dy: Tensor, blk: GridBlock, tile: int) -> Tensor:
+    """Largest displacement gradient per tile, ``(b, n_t, n_t)`` (dimensionless: arcsec
+    of relative ray displacement per arcsec of image-plane separation), from finite
+    differences of the displacement ``(dx, dy)`` ``(b, m²)`` between neighbouring points."""
+    m = blk.m
+    b = dx.shape[0]
+    g = torch.zeros(b, m, m, dtype=dx.dtype, device=dx.device)
+    for d in (dx.reshape(b, m, m), dy.reshape(b, m, m)):
+        gv = d.diff(dim=1).abs()
+        gu = d.diff(dim=2).abs()
+        g[:, 1:, :] = torch.maximum(g[:, 1:, :], gv)
+        g[:, :-1, :] = torch.maximum(g[:, :-1, :], gv)
+        g[:, :, 1:] = torch.maximum(g[:, :, 1:], gu)
+        g[:, :, :-1] = torch.maximum(g[:, :, :-1], gu)
+    nt = -(-m // tile)
+    g = torch.nn.functional.pad(g, (0, nt * tile - m, 0, nt * tile - m))
+    return (g.reshape(b, nt, tile, nt, tile).amax((2, 4)) / blk.step)
+
+
+def _member_distortion(tile_g: Tensor, v: Tensor, u: Tensor, reach: Tensor, tile: int) -> Tensor:
+    """Largest displacement gradient over the tiles within ``reach`` grid steps of each
+    member (``(b, N)``), from the per-tile maxima ``tile_g`` ``(b, n_t, n_t)``: a max
+    filter per distinct reach (in tiles), read at the member's tile."""
+    b, nt, _ = tile_g.shape
+    k = torch.ceil(reach / tile).to(torch.long) + 1  # tiles
+    J = torch.floor(v / tile).to(torch.long).clamp(0, nt - 1)
+    I = torch.floor(u / tile).to(torch.long).clamp(0, nt - 1)
+    out = torch.zeros_like(v)
+    for kk in torch.unique(k).tolist():
+        w = min(2 * kk + 1, 2 * nt + 1)
+        pooled = torch.nn.functional.max_pool2d(tile_g[:, None], w, stride=1, padding=w // 2)[:, 0]
+        sel = k == kk
+        val = pooled[torch.arange(b, device=v.device)[:, None].expand_as(J), J, I]
+        out = torch.where(sel, val, out)
+    return out
+
+
+#: Tiles whose rays are distorted by more than this gradient get the exact far field.
+SMOOTH_DISTORTION = 0.02
+#: Members whose rays are distorted by more than this gradient (a cuspy foreground halo
+#: nearby) are not split: they are evaluated at every point of the grid.
+MAX_DISTORTION = 0.25
+
+
+def _stage_rough(n_tiles: int) -> None:
+    from subslope import render
+
+    render.STAGE_COUNTS["split_rough_tiles"] += n_tiles
+
+
+def _far_on_tiles(far_k, tx: Tensor, ty: Tensor, table: Tensor, profile: str, inv_rc2: Tensor, img: Tensor):
+    """Exact far field ``(T, Q)`` at the points of tiles ``tx, ty`` ``(T, Q)`` of images
+    ``img`` ``(T,)`` (members of image ``img[t]`` only)."""
+    outs = [[], [], []]
+    for k in torch.unique(img).tolist():
+        sel = img == k
+        fx, fy, fk = far_k(tx[sel].reshape(1, -1), ty[sel].reshape(1, -1), table[k:k + 1].contiguous(), profile,
+                           inv_rc2[k:k + 1].contiguous())
+        for o, f in zip(outs, (fx, fy, fk)):
+            o.append((sel, f.reshape(-1, tx.shape[1])))
+    res = []
+    for o in outs:
+        full = tx.new_zeros(tx.shape)
+        for sel, f in o:
+            full[sel] = f
+        res.append(full)
+    return res
+
+
+def _tile_lists(v: np.ndarray, u: np.ndarray, radius: np.ndarray, live: np.ndarray, n_tiles: int, tile: int):
+    """(tile, member) pairs of every live member and every tile whose box comes within
+    ``radius`` grid steps of the member's grid position ``(v, u)``.
+
+    Inputs ``(b, N)`` numpy arrays; tiles of image ``k`` are numbered
+    ``k·n_tiles² + J·n_tiles + I`` (tile ``J`` holds grid rows ``[J·t, (J+1)·t)``).
+    Returns ``(tiles, members)``, ``(n_pairs,)`` int64 arrays sorted by tile (stable);
+    ``members`` index the flattened ``(b·N)`` members.
+    """
+    b, n = v.shape
+    last = n_tiles - 1
+    v, u, radius = v.reshape(-1), u.reshape(-1), radius.reshape(-1)
+    j0 = np.clip(np.floor((v - radius + 0.5) / tile), 0, last).astype(np.int64)
+    j1 = np.clip(np.floor((v + radius + 0.5) / tile), -1, last).astype(np.int64)
+    i0 = np.clip(np.floor((u - radius + 0.5) / tile), 0, last).astype(np.int64)
+    i1 = np.clip(np.floor((u + radius + 0.5) / tile), -1, last).astype(np.int64)
+    nj = np.maximum(j1 - j0 + 1, 0)
+    ni = np.maximum(i1 - i0 + 1, 0)
+    cnt = nj * ni * live.reshape(-1)
+    mem = np.repeat(np.arange(b * n), cnt)
+    k = np.arange(mem.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    ni_m = ni[mem]
+    J = j0[mem] + k // ni_m
+    I = i0[mem] + k % ni_m
+    # keep the tiles whose box [J·t − 1/2, (J+1)·t − 1/2] comes within radius of (v, u)
+    vm, um, rm = v[mem], u[mem], radius[mem]
+    dv = np.maximum(np.maximum(J * tile - 0.5 - vm, vm - (J * tile + tile - 0.5)), 0)
+    du = np.maximum(np.maximum(I * tile - 0.5 - um, um - (I * tile + tile - 0.5)), 0)
+    near = dv * dv + du * du <= rm * rm
+    mem, J, I = mem[near], J[near], I[near]
+    tiles = ((mem // n) * n_tiles + J) * n_tiles + I
+    order = np.argsort(tiles, kind="stable")
+    return tiles[order], mem[order]
+
+
+def _tiled(v: Tensor, m: int, tile: int, fill: float) -> Tensor:
+    """``(b, m²)`` block values → ``(b·n_t², tile²)`` tiles (padded with ``fill``)."""
+    b = v.shape[0]
+    nt = -(-m // tile)
+    img = torch.nn.functional.pad(v.reshape(b, m, m), (0, nt * tile - m, 0, nt * tile - m), value=fill)
+    return img.reshape(b, nt, tile, nt, tile).permute(0, 1, 3, 2, 4).reshape(b * nt * nt, tile * tile)
+
+
+def _untiled(t: Tensor, b: int, m: int, tile: int) -> Tensor:
+    nt = -(-m // tile)
+    img = t.reshape(b, nt, nt, tile, tile).permute(0, 1, 3, 2, 4).reshape(b, nt * tile, nt * tile)
+    return img[:, :m, :m].reshape(b, m * m)
+
+
+def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance: float, peaks=None,
+                 half_width: float | None = None) -> Tensor:
+    """Index into :data:`RHO_LADDER` of each member's split radius ``(b, N)`` (long).
+
+    The smallest ρ with ``C_p(ρ)·max|α_i(r = ρh)| ≤ tolerance`` (arcsec), ``|α_i|``
+    taken at 4 diagonal directions on the circle
+    (:func:`subslope.pair_kernels.circle_peaks`, or the compiled ``peaks``); ``C_p``
+    from :data:`ERROR_CONSTANTS` when the member's zone and the stencils around it
+    (``ρh + (p/2 + 1)h``) stay inside the field of half-width ``half_width`` (arcsec),
+    else from :data:`EDGE_ERROR_CONSTANTS`; the largest rung when none qualifies.
+    ``h``: node spacing (arcsec).
+    """
+    from subslope.pair_kernels import circle_peaks
+
+    kw = {"dtype": table.dtype, "device": table.device}
+    rho = torch.as_tensor(RHO_LADDER, **kw)
+    c_in = torch.as_tensor(ERROR_CONSTANTS[order], **kw)
+    c_edge = torch.as_tensor(EDGE_ERROR_CONSTANTS[order], **kw)
+    amax = (peaks or circle_peaks)(table, profile, rho * h)  # (b, N, L)
+    if half_width is None:
+        c = c_edge
+    else:
+        inset = half_width - torch.maximum(table[:, 0].abs(), table[:, 1].abs())  # (b, N)
+        inside = inset[..., None] >= (rho + order / 2 + 1) * h
+        c = torch.where(inside, c_in, c_edge)
+    ok = c * amax <= tolerance
+    ok[..., -1] = True
+    return ok.to(torch.int8).argmax(-1)
+
+
+def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: np.ndarray, mem: np.ndarray,
+                   bx: Tensor, by: Tensor, m: int):
+    """Near field of the (tile, member) pairs on one ``m × m`` block: tiles are sorted by
+    their number of members and evaluated in :data:`N_GROUPS` groups, each padded to
+    its largest member count. Returns ``(ax, ay)`` ``(b, m²)`` and the κ sum ``(b,)``."""
+    b, n_rows, n = table.shape
+    device, dtype = bx.device, bx.dtype
+    nt = -(-m // TILE)
+    n_all = b * nt * nt
+    counts = np.bincount(tiles, minlength=n_all)
+    slot = np.arange(tiles.size) - (np.cumsum(counts) - counts)[tiles]
+    used = np.flatnonzero(counts)
+    order = np.argsort(-counts[used], kind="stable")
+    used = used[order]
+    cnt_used = counts[used]
+    rank = np.empty(n_all, dtype=np.int64)
+    rank[used] = np.arange(used.size)
+    pos = np.full((used.size, int(cnt_used[0])), b * n, dtype=np.int64)  # b·n: the padding column
+    pos[rank[tiles], slot] = mem
+    pos_t = torch.as_tensor(pos, device=device)
+    used_t = torch.as_tensor(used, device=device)
+    flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1)
+    flat_irc = torch.cat([inv_rc2.reshape(-1), inv_rc2.new_zeros(1)])
+    mask_all = torch.cat([torch.ones(b * n, dtype=dtype, device=device), torch.zeros(1, dtype=dtype, device=device)])
+    tx, ty = _tiled(bx, m, TILE, 1e4)[used_t], _tiled(by, m, TILE, 1e4)[used_t]
+    outs = []
+    bounds = np.unique(np.linspace(0, used.size, N_GROUPS + 1).astype(int))
+    for g0, g1 in zip(bounds[:-1], bounds[1:]):
+        p = pos_t[g0:g1, :int(cnt_used[g0])]
+        outs.append(torch.stack(near_k(tx[g0:g1], ty[g0:g1], flat_tab[:, p], profile, flat_irc[p], mask_all[p])))
+    full = torch.zeros(3, n_all, TILE * TILE, dtype=dtype, device=device)
+    full[:, used_t] = torch.cat(outs, 1)
+    return _untiled(full[0], b, m, TILE), _untiled(full[1], b, m, TILE), full[2].reshape(b, -1).sum(1)
+
+
+#: Groups of tiles (by member count) of the near-field pass: one kernel call each.
+N_GROUPS = 4
+
+
+def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[GridBlock],
+               sheet_block: int, *, spacing: float, order: int, tolerance: float, displaced: bool,
+               base: tuple[Tensor, Tensor] | None, kernels, max_elements: int):
+    """Near/far population pass. Returns ``(alpha_x, alpha_y, kappa_sum)``.
+
+    ``table``: ``(b, M, N)`` member table (:func:`subslope.pair_kernels.member_table`);
+    ``x, y``: rays ``(b, P)`` on the population's plane, laid out as ``blocks``;
+    ``sheet_block``: index of the pixel-centre block whose κ sum the sheet needs;
+    ``spacing``: node spacing ``h`` (arcsec; rounded to whole grid steps per block);
+    ``order``: Lagrange stencil points per axis (``p``); ``tolerance``: far-field error
+    target per member (arcsec; sets each member's ``r_c``, :func:`member_rungs`);
+    ``displaced``: the rays are not the regular grids (multi-plane), then
+    ``base = (x0, y0)`` ``(1, P)`` are the undeflected grids; ``kernels``:
+    ``(far_sums, near_tile_sums, circle_peaks)`` callables (compiled or eager,
+    :mod:`subslope.pair_kernels`); ``max_elements``: bound on members × points per call.
+
+    Returns ``alpha_x, alpha_y`` ``(b, P)`` (arcsec; no sheet) and ``kappa_sum`` ``(b,)``:
+    ``Σ_{pixel-centre rays} Σ_i κ_i``.
+    """
+    far_k, near_k, *rest = kernels
+    peaks_k = rest[0] if rest else None
+    b, _, n = table.shape
+    dtype, device = x.dtype, x.device
+    half = 0.5 * (blocks[0].m - 1) * blocks[0].step
+    rungs = member_rungs(table, profile, spacing, order, tolerance, peaks_k, half)  # (b, N)
+    rho = torch.as_tensor(RHO_LADDER, dtype=dtype, device=device)[rungs]
+    r_c = rho * spacing
+    inv_rc2 = 1.0 / (r_c * r_c)
+    live = _live(table, profile)
+    outs_x, outs_y = [], []
+    k_sum = None
+    cx, cy = table[:, 0, :], table[:, 1, :]
+    for g, blk in enumerate(blocks):
+        m, sl = blk.m, slice(blk.offset, blk.offset + blk.m * blk.m)
+        bx, by = x[:, sl].contiguous(), y[:, sl].contiguous()
+        # ---- far field at the nodes, interpolated
+        nodes = node_indices(m, max(1, int(round(spacing / blk.step))))
+        nd = torch.as_tensor(nodes, device=device)
+        flat_nodes = (nd[:, None] * m + nd[None, :]).reshape(-1)
+        xn, yn = bx[:, flat_nodes], by[:, flat_nodes]
+        fx = fy = fk = None
+        step_n = max(1, max_elements // max(1, flat_nodes.numel()))
+        for s in range(0, n, step_n):
+            e = min(n, s + step_n)
+            px, py, pk = far_k(xn, yn, table[:, :, s:e].contiguous(), profile, inv_rc2[:, s:e].contiguous())
+            fx, fy, fk = (px, py, pk) if fx is None else (fx + px, fy + py, fk + pk)
+        L = interpolation_matrix(m, nodes, order, dtype, device)
+        nn = len(nodes)
+
+        def interp(v):
+            return (L @ v.reshape(b, nn, nn) @ L.T).reshape(b, m * m)
+
+        acc_x, acc_y = interp(fx), interp(fy)
+        if g == sheet_block:
+            w = L.sum(0)
+            k_sum = ((fk.reshape(b, nn, nn) * w[:, None]) * w[None, :]).sum((1, 2))
+        nt = -(-m // TILE)
+        tile_g = None
+        if displaced:
+            x0, y0 = base
+            ddx, ddy = x0[:, sl] - bx, y0[:, sl] - by
+            tile_g = _tile_distortion(ddx, ddy, blk, TILE)
+            rough = torch.nonzero(tile_g.reshape(-1) > SMOOTH_DISTORTION).reshape(-1)
+            if rough.numel():
+                # the ray map is not smooth there (a foreground halo's centre): the far field
+                # is evaluated at every point of those tiles instead of interpolated
+                _stage_rough(rough.numel())
+                tx, ty = _tiled(bx, m, TILE, 1e4)[rough], _tiled(by, m, TILE, 1e4)[rough]
+                q = tx.shape[0] * tx.shape[1]
+                ex = ey = ek = None
+                step_r = max(1, max_elements // max(1, q))
+                for s0 in range(0, n, step_r):
+                    e0 = min(n, s0 + step_r)
+                    rows_img = torch.div(rough, nt * nt, rounding_mode="floor")
+                    px, py, pk = _far_on_tiles(far_k, tx, ty, table[:, :, s0:e0], profile, inv_rc2[:, s0:e0],
+                                               rows_img)
+                    ex, ey, ek = (px, py, pk) if ex is None else (ex + px, ey + py, ek + pk)
+                keep = torch.ones(b * nt * nt, TILE * TILE, dtype=dtype, device=device)
+                keep[rough] = 0.0
+                keep = _untiled(keep, b, m, TILE)
+                put_x = torch.zeros(b * nt * nt, TILE * TILE, dtype=dtype, device=device)
+                put_y = torch.zeros_like(put_x)
+                put_x[rough], put_y[rough] = ex, ey
+                acc_x = acc_x * keep + _untiled(put_x, b, m, TILE)
+                acc_y = acc_y * keep + _untiled(put_y, b, m, TILE)
+                if g == sheet_block:
+                    # replace the interpolated κ of those points by the exact one
+                    kap_i = (L @ fk.reshape(b, nn, nn) @ L.T).reshape(b, m * m)
+                    put_k = torch.zeros_like(put_x)
+                    put_k[rough] = ek
+                    k_sum = k_sum - (kap_i * (1 - keep)).sum(1) + _untiled(put_k, b, m, TILE).sum(1)
+        # ---- near field: per tile, the members within r_c of it
+        margin = 0.75
+        if displaced:
+            v, u = _image_position(cx, cy, blk, ddx, ddy)
+            reach0 = r_c / blk.step + margin + 1.0
+            grad = _member_distortion(tile_g, v, u, 2.0 * reach0, TILE)
+            radius = torch.where(grad <= MAX_DISTORTION, reach0 / (1.0 - grad.clamp(max=MAX_DISTORTION)),
+                                 torch.full_like(reach0, 4.0 * m))
+        else:
+            v, u = _image_position(cx, cy, blk, None, None)
+            radius = r_c / blk.step + margin
+        tiles, mem = _tile_lists(*(t.detach().cpu().numpy() for t in (v, u, radius, live)), nt, TILE)
+        if tiles.size:
+            ox, oy, ok_ = _near_on_tiles(near_k, table, profile, inv_rc2, tiles, mem, bx, by, m)
+            acc_x = acc_x + ox
+            acc_y = acc_y + oy
+            if g == sheet_block:
+                k_sum = k_sum + ok_
+        outs_x.append(acc_x)
+        outs_y.append(acc_y)
+    if blocks[-1].offset + blocks[-1].m ** 2 != x.shape[1]:
+        raise ValueError(f"grid blocks cover {blocks[-1].offset + blocks[-1].m ** 2} points, rays have {x.shape[1]}")
+    return torch.cat(outs_x, 1), torch.cat(outs_y, 1), k_sum
