@@ -44,6 +44,7 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
+from subslope import nearfar as NF  # noqa: E402
 from subslope import render as R  # noqa: E402
 from subslope.instrument import add_noise  # noqa: E402
 
@@ -112,7 +113,9 @@ def breakdown(args, settings) -> None:
     state = {"stage": None}
     orig = {n: getattr(R, n) for n in ("_population_pass", "epl_deflection", "shear_deflection",
                                        "multipole_deflection", "sersic_ellipse_from_magnitude", "convolve",
-                                       "multi_plane_ray_shoot", "pixelated_light", "_stage", "_pack")}
+                                       "multi_plane_ray_shoot", "pixelated_light", "_stage", "_pack",
+                                       "_flat_table")}
+    orig_nf = {n: getattr(NF, n) for n in ("member_rungs", "_tile_lists", "_near_on_tiles", "_far_on_tiles")}
 
     def timed(name, fn, label=None):
         def w(*a, **k):
@@ -130,13 +133,18 @@ def breakdown(args, settings) -> None:
 
     R._stage = stage
     R._population_pass = timed("pop", orig["_population_pass"],
-                               lambda a: f"population pass: {state['stage']} ({a[0].profile}, chunk {a[0].width})")
+                               lambda a: f"population pass: {state['stage']} ({a[0].profile})")
+    NF.member_rungs = timed("  split: member radii (circle peaks)", orig_nf["member_rungs"])
+    NF._tile_lists = timed("  split: tile lists", orig_nf["_tile_lists"])
+    NF._near_on_tiles = timed("  split: near field on tiles", orig_nf["_near_on_tiles"])
+    NF._far_on_tiles = timed("  split: exact far field in rough tiles", orig_nf["_far_on_tiles"])
     R.epl_deflection = timed("main-lens EPL (n_terms_main)", orig["epl_deflection"])
     R.shear_deflection = timed("shear", orig["shear_deflection"])
     R.multipole_deflection = timed("multipoles", orig["multipole_deflection"])
     R.sersic_ellipse_from_magnitude = timed("Sérsic (source + lens light)", orig["sersic_ellipse_from_magnitude"])
     R.convolve = timed("PSF convolution", orig["convolve"])
-    R._pack = timed("packing populations (numpy -> padded tensors)", orig["_pack"])
+    R._pack = timed("member tables (subhalos)", orig["_pack"])
+    R._flat_table = timed("member tables (LoS)", orig["_flat_table"])
     try:
         batch.render(settings)  # warm-up / compile
         acc.clear()
@@ -149,24 +157,26 @@ def breakdown(args, settings) -> None:
     finally:
         for n, f in orig.items():
             setattr(R, n, f)
+        for n, f in orig_nf.items():
+            setattr(NF, n, f)
     per = args.repeats * batch.n
     total = sum(tot) / per
     n_sub = np.asarray(batch.subhalos.counts)
-    chunks = int(np.sum(-(-n_sub // R.chunk_width(settings, settings.npix ** 2))))
     print(f"\nbreakdown, {batch.name}, {batch.n} images x {args.repeats} repeats, load {C.load()}, "
           f"mean LoS halos {np.mean(batch.los.counts):.1f}")
     print("| stage | ms/image | share | calls/image |\n|---|---|---|---|")
     for k, v in sorted(acc.items(), key=lambda kv: -kv[1]):
         print(f"| {k} | {1e3 * v / per:.1f} | {100 * v / per / total:.0f}% | {calls[k] / per:.0f} |")
-    inner = sum(v for k, v in acc.items())  # the population passes of LoS sit inside nothing else timed
+    # the population passes of LoS sit inside nothing else timed; the split's parts sit inside the pass
+    inner = sum(v for k, v in acc.items() if not k.startswith("  "))
     print(f"| rest (Python glue, grids, multi-plane recursion, binning) | {1e3 * (total - inner / per):.1f} | "
           f"{100 * (1 - inner / per / total):.0f}% | |")
     print(f"| **total** | **{1e3 * total:.1f}** | | |")
     pairs = float(np.mean(n_sub)) * settings.npix ** 2
     sub = [v for k, v in acc.items() if k.startswith("population pass: subhalos")]
     if sub:
-        print(f"subhalo pass: {1e9 * sub[0] / per / pairs:.1f} ns per pixel-subhalo pair "
-              f"(incl. padding to the chunk width; {chunks / batch.n:.0f} chunks/image)")
+        print(f"subhalo pass: {1e9 * sub[0] / per / pairs:.1f} ns per pixel-subhalo pair of the direct sum "
+              f"(population method: {settings.population})")
 
 
 def main() -> None:

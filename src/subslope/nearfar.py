@@ -323,22 +323,26 @@ def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: 
     pos[rank[tiles], slot] = mem
     pos_t = torch.as_tensor(pos, device=device)
     used_t = torch.as_tensor(used, device=device)
-    flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1)
+    flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1).contiguous()
     flat_irc = torch.cat([inv_rc2.reshape(-1), inv_rc2.new_zeros(1)])
     mask_all = torch.cat([torch.ones(b * n, dtype=dtype, device=device), torch.zeros(1, dtype=dtype, device=device)])
     tx, ty = _tiled(bx, m, TILE, 1e4)[used_t], _tiled(by, m, TILE, 1e4)[used_t]
     outs = []
     bounds = np.unique(np.linspace(0, used.size, N_GROUPS + 1).astype(int))
     for g0, g1 in zip(bounds[:-1], bounds[1:]):
-        p = pos_t[g0:g1, :int(cnt_used[g0])]
-        outs.append(torch.stack(near_k(tx[g0:g1], ty[g0:g1], flat_tab[:, p], profile, flat_irc[p], mask_all[p])))
+        p = pos_t[g0:g1, :int(cnt_used[g0])].contiguous()
+        fp = p.reshape(-1)
+        tab_p = torch.index_select(flat_tab, 1, fp).reshape(n_rows, *p.shape)
+        outs.append(torch.stack(near_k(tx[g0:g1], ty[g0:g1], tab_p, profile,
+                                       flat_irc.index_select(0, fp).reshape(p.shape),
+                                       mask_all.index_select(0, fp).reshape(p.shape))))
     full = torch.zeros(3, n_all, TILE * TILE, dtype=dtype, device=device)
     full[:, used_t] = torch.cat(outs, 1)
     return _untiled(full[0], b, m, TILE), _untiled(full[1], b, m, TILE), full[2].reshape(b, -1).sum(1)
 
 
 #: Groups of tiles (by member count) of the near-field pass: one kernel call each.
-N_GROUPS = 4
+N_GROUPS = 8
 
 
 def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[GridBlock],
