@@ -42,6 +42,7 @@ def _reference(s: R.RenderSettings) -> R.RenderSettings:
 SCENES = {
     "train-nsub0-los": ("train", 0, True, None, 11, {}),
     "train-nsub1500-los": ("train", 1500, True, None, 12, {}),
+    "train-nsub3000-los": ("train", 3000, True, None, 17, {}),
     "train-stiff-gamma1.1-nsub1500-los": ("train", 1500, True, 1.1, 13, {}),
     "train-nsub200-k2": ("train", 200, False, None, 14, {"supersample": 2}),
     "nfw-nsub600-los": ("nfw", 600, True, None, 15, {}),

@@ -24,7 +24,9 @@ ch. 8) with a compactly supported near part.
   ``≤ C_p(ρ)·max|α_i(r_c)|`` with ``ρ = r_c/h`` (:data:`ERROR_CONSTANTS`, measured by
   ``benchmarks/split_constants.py``). Each member gets the smallest ``ρ`` of
   :data:`RHO_LADDER` that meets ``split_tolerance`` (:func:`member_rungs`): the many
-  small subhalos get small near zones, the few massive ones large ones.
+  small subhalos get small near zones, the few massive ones large ones. The errors of
+  nearby members add (measured: the image error grows ∝ N), so above
+  :data:`REFERENCE_MEMBERS` members the per-member tolerance shrinks ∝ 1/N.
 * **Near field** ``Σ_i α_i (1 − W_i)`` is exact: the grid is cut into ``TILE × TILE``
   tiles and each tile sums the members whose near zone can reach it (one fused
   reduction per group of tiles, :func:`subslope.pair_kernels.near_tile_sums`); points
@@ -272,7 +274,7 @@ def _untiled(t: Tensor, b: int, m: int, tile: int) -> Tensor:
     return img[:, :m, :m].reshape(b, m * m)
 
 
-def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance: float, peaks=None,
+def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, peaks=None,
                  half_width: float | None = None) -> Tensor:
     """Index into :data:`RHO_LADDER` of each member's split radius ``(b, N)`` (long).
 
@@ -282,7 +284,8 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance: f
     from :data:`ERROR_CONSTANTS` when the member's zone and the stencils around it
     (``ρh + (p/2 + 1)h``) stay inside the field of half-width ``half_width`` (arcsec),
     else from :data:`EDGE_ERROR_CONSTANTS`; the largest rung when none qualifies.
-    ``h``: node spacing (arcsec).
+    ``h``: node spacing (arcsec); ``tolerance``: a float or a tensor broadcasting
+    against ``(b, N, L)``.
     """
     from subslope.pair_kernels import circle_peaks
 
@@ -341,6 +344,10 @@ def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: 
     return _untiled(full[0], b, m, TILE), _untiled(full[1], b, m, TILE), full[2].reshape(b, -1).sum(1)
 
 
+#: Population size up to which ``split_tolerance`` is the per-member error target; a
+#: population of N > this many members gets ``split_tolerance · REFERENCE_MEMBERS / N``.
+REFERENCE_MEMBERS = 1000
+
 #: Groups of tiles (by member count) of the near-field pass: one kernel call each.
 N_GROUPS = 8
 
@@ -369,11 +376,15 @@ def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[G
     b, _, n = table.shape
     dtype, device = x.dtype, x.device
     half = 0.5 * (blocks[0].m - 1) * blocks[0].step
-    rungs = member_rungs(table, profile, spacing, order, tolerance, peaks_k, half)  # (b, N)
+    live = _live(table, profile)
+    # the interpolation errors of nearby members add: above REFERENCE_MEMBERS members
+    # the per-member tolerance shrinks in proportion
+    n_live = live.sum(1, keepdim=True).clamp(min=1).to(dtype)
+    tol = tolerance * torch.clamp(REFERENCE_MEMBERS / n_live, max=1.0)[..., None]  # (b, 1, 1)
+    rungs = member_rungs(table, profile, spacing, order, tol, peaks_k, half)  # (b, N)
     rho = torch.as_tensor(RHO_LADDER, dtype=dtype, device=device)[rungs]
     r_c = rho * spacing
     inv_rc2 = 1.0 / (r_c * r_c)
-    live = _live(table, profile)
     outs_x, outs_y = [], []
     k_sum = None
     cx, cy = table[:, 0, :], table[:, 1, :]

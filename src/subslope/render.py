@@ -120,8 +120,9 @@ class RenderSettings:
         populations of at least ``split_min_members`` members on a plane, else 'direct'.
     split_spacing : node spacing h of the far-field mesh, in pixels.
     split_order : Lagrange interpolation points per axis of the far field (4, 6, 8).
-    split_tolerance : far-field interpolation error allowed per member (arcsec); sets
-        each member's r_c (:func:`subslope.nearfar.member_rungs`).
+    split_tolerance : far-field interpolation error allowed per member (arcsec) in a
+        population of ≤ 1000 members, ∝ 1/N above; sets each member's r_c
+        (:func:`subslope.nearfar.member_rungs`).
     split_min_members : smallest population that 'auto' splits.
     source_interpolation : 'bilinear' | 'bicubic' | 'nearest' for pixelated sources.
     convolution : 'auto' | 'direct' | 'fft' (:func:`subslope.instrument.convolve`).
