@@ -193,6 +193,23 @@ def test_sub_batched_path_matches(monkeypatch):
         assert float((alone - full[i]).abs().max()) <= 1e-5 * float(full[i].abs().max()), i
 
 
+def test_sub_batched_split_matches(monkeypatch):
+    """The sub-batched (accelerator) path with the near/far split (populations of 140 and
+    90 members, one system without subhalos, LoS planes): each image equals its
+    per-image render to float64 rounding."""
+    s = R.RenderSettings(device="cpu", compile="off", dtype=torch.float64)
+    m, subs, los = macro_of(3, seed=5), subs_of([140, 0, 90], seed=6), los_of([3, 5, 0], seed=7)
+    monkeypatch.setattr(R, "_PER_IMAGE_ON_CPU", False)
+    R.reset_stage_counts()
+    full = R.render(m, PSF, s, subhalos=subs, los=los)
+    assert R.STAGE_COUNTS["split"] == 1
+    monkeypatch.setattr(R, "_PER_IMAGE_ON_CPU", True)
+    for i in range(3):
+        mi, si, li = _split(m, subs, los, i)
+        alone = R.render(mi, PSF, s, subhalos=si, los=li)[0]
+        assert float((alone - full[i]).abs().max()) <= 1e-12 * float(full[i].abs().max()), i
+
+
 @pytest.mark.gpu
 def test_batch_invariance_cuda():
     """Sub-batched CUDA path: an image alone and in a batch agree to float rounding."""
