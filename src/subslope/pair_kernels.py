@@ -11,18 +11,17 @@ per-pair arithmetic is kept minimal:
    evaluates ``(alpha_x, alpha_y, kappa)`` of one member at one point from the table
    rows, with no branch and no per-member transcendental (EPL: one ``log`` and one
    ``exp`` per pair);
-3. the kernels below reduce over members (:func:`direct_sums`, :func:`far_sums`) or
-   keep one value per (member, point) (:func:`near_terms`). Under ``torch.compile``
-   each is one fused loop that never materialises an ``(N, Q)`` intermediate
-   (measured: 1.8 ns per EPL pair, float32, one AMD EPYC core; ``docs/performance.md``).
+3. the kernels below reduce over members (:func:`direct_sums`, :func:`far_sums`,
+   :func:`near_tile_sums`). Under ``torch.compile`` each is one fused loop that never
+   materialises an ``(N, Q)`` intermediate (measured: 1.9 ns per EPL pair, float32, one
+   AMD EPYC core; ``docs/performance.md``).
 
 The split weight (:func:`split_weight`) is the partition of unity of the near/far
 population method (:mod:`subslope.nearfar`): ``W(s) = 35 s^4 - 84 s^5 + 70 s^6 - 20 s^7``
-of ``s = min(r^2 / r_c^2, 1)`` (the C^3 smoothstep of degree 7 in ``s``), so
-``W = 0`` at the member's centre with its first seven ``r``-derivatives and
-``W = 1`` for ``r >= r_c``. ``alpha·W`` is smooth everywhere (the far field, evaluated
-on a coarse mesh and interpolated) and ``alpha·(1 - W)`` vanishes outside ``r_c``
-(the near field, evaluated exactly in a window around each member).
+of ``s = min(r / r_c, 1)`` (the C^3 smoothstep of degree 7), so ``W = 0`` at the
+member's centre (as ``35 (r/r_c)^4``) and ``W = 1`` for ``r >= r_c``. ``alpha·W`` is
+smooth everywhere (the far field, evaluated at a coarse node mesh and interpolated) and
+``alpha·(1 - W)`` vanishes outside ``r_c`` (the near field, summed exactly on tiles).
 
 Padding: padded members carry zero amplitude (EPL ``amp = 0``, NFW/tNFW ``alpha_rs = 0``)
 so their table rows scale every output to exact zeros.
