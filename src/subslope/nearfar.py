@@ -268,6 +268,13 @@ def _tiled(v: Tensor, m: int, tile: int, fill: float) -> Tensor:
     return img.reshape(b, nt, tile, nt, tile).permute(0, 1, 3, 2, 4).reshape(b * nt * nt, tile * tile)
 
 
+def _replace_tiles(v: Tensor, tiles: Tensor, vals: Tensor, b: int, m: int) -> Tensor:
+    """``(b, m²)`` block values with tiles ``tiles`` replaced by ``vals`` ``(T, TILE²)``."""
+    t = _tiled(v, m, TILE, 0.0)
+    t[tiles] = vals
+    return _untiled(t, b, m, TILE)
+
+
 def _untiled(t: Tensor, b: int, m: int, tile: int) -> Tensor:
     nt = -(-m // tile)
     img = t.reshape(b, nt, nt, tile, tile).permute(0, 1, 3, 2, 4).reshape(b, nt * tile, nt * tile)
@@ -306,12 +313,13 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
 
 
 def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: np.ndarray, mem: np.ndarray,
-                   bx: Tensor, by: Tensor, m: int):
+                   tx_all: Tensor, ty_all: Tensor, m: int):
     """Near field of the (tile, member) pairs on one ``m × m`` block: tiles are sorted by
     their number of members and evaluated in :data:`N_GROUPS` groups, each padded to
-    its largest member count. Returns ``(ax, ay)`` ``(b, m²)`` and the κ sum ``(b,)``."""
+    its largest member count. ``tx_all, ty_all``: the block's rays as tiles
+    (:func:`_tiled`). Returns ``(ax, ay)`` ``(b, m²)`` and the κ sum ``(b,)``."""
     b, n_rows, n = table.shape
-    device, dtype = bx.device, bx.dtype
+    device, dtype = tx_all.device, tx_all.dtype
     nt = -(-m // TILE)
     n_all = b * nt * nt
     counts = np.bincount(tiles, minlength=n_all)
@@ -329,7 +337,7 @@ def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: 
     flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1).contiguous()
     flat_irc = torch.cat([inv_rc2.reshape(-1), inv_rc2.new_zeros(1)])
     mask_all = torch.cat([torch.ones(b * n, dtype=dtype, device=device), torch.zeros(1, dtype=dtype, device=device)])
-    tx, ty = _tiled(bx, m, TILE, 1e4)[used_t], _tiled(by, m, TILE, 1e4)[used_t]
+    tx, ty = tx_all[used_t], ty_all[used_t]
     outs = []
     bounds = np.unique(np.linspace(0, used.size, N_GROUPS + 1).astype(int))
     for g0, g1 in zip(bounds[:-1], bounds[1:]):
@@ -413,6 +421,7 @@ def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[G
             w = L.sum(0)
             k_sum = ((fk.reshape(b, nn, nn) * w[:, None]) * w[None, :]).sum((1, 2))
         nt = -(-m // TILE)
+        tx_all, ty_all = _tiled(bx, m, TILE, 1e4), _tiled(by, m, TILE, 1e4)
         tile_g = None
         if displaced:
             x0, y0 = base
@@ -423,30 +432,19 @@ def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[G
                 # the ray map is not smooth there (a foreground halo's centre): the far field
                 # is evaluated at every point of those tiles instead of interpolated
                 _stage_rough(rough.numel())
-                tx, ty = _tiled(bx, m, TILE, 1e4)[rough], _tiled(by, m, TILE, 1e4)[rough]
-                q = tx.shape[0] * tx.shape[1]
+                tx, ty = tx_all[rough], ty_all[rough]
+                img = torch.div(rough, nt * nt, rounding_mode="floor")
                 ex = ey = ek = None
-                step_r = max(1, max_elements // max(1, q))
+                step_r = max(1, max_elements // max(1, tx.numel()))
                 for s0 in range(0, n, step_r):
                     e0 = min(n, s0 + step_r)
-                    rows_img = torch.div(rough, nt * nt, rounding_mode="floor")
-                    px, py, pk = _far_on_tiles(far_k, tx, ty, table[:, :, s0:e0], profile, inv_rc2[:, s0:e0],
-                                               rows_img)
+                    px, py, pk = _far_on_tiles(far_k, tx, ty, table[:, :, s0:e0], profile, inv_rc2[:, s0:e0], img)
                     ex, ey, ek = (px, py, pk) if ex is None else (ex + px, ey + py, ek + pk)
-                keep = torch.ones(b * nt * nt, TILE * TILE, dtype=dtype, device=device)
-                keep[rough] = 0.0
-                keep = _untiled(keep, b, m, TILE)
-                put_x = torch.zeros(b * nt * nt, TILE * TILE, dtype=dtype, device=device)
-                put_y = torch.zeros_like(put_x)
-                put_x[rough], put_y[rough] = ex, ey
-                acc_x = acc_x * keep + _untiled(put_x, b, m, TILE)
-                acc_y = acc_y * keep + _untiled(put_y, b, m, TILE)
+                acc_x = _replace_tiles(acc_x, rough, ex, b, m)
+                acc_y = _replace_tiles(acc_y, rough, ey, b, m)
                 if g == sheet_block:
-                    # replace the interpolated κ of those points by the exact one
-                    kap_i = (L @ fk.reshape(b, nn, nn) @ L.T).reshape(b, m * m)
-                    put_k = torch.zeros_like(put_x)
-                    put_k[rough] = ek
-                    k_sum = k_sum - (kap_i * (1 - keep)).sum(1) + _untiled(put_k, b, m, TILE).sum(1)
+                    kap_i = interp(fk)
+                    k_sum = k_sum + (_replace_tiles(kap_i, rough, ek, b, m) - kap_i).sum(1)
         # ---- near field: per tile, the members within r_c of it
         margin = 0.75
         if displaced:
@@ -460,7 +458,7 @@ def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[G
             radius = r_c / blk.step + margin
         tiles, mem = _tile_lists(*(t.detach().cpu().numpy() for t in (v, u, radius, live)), nt, TILE)
         if tiles.size:
-            ox, oy, ok_ = _near_on_tiles(near_k, table, profile, inv_rc2, tiles, mem, bx, by, m)
+            ox, oy, ok_ = _near_on_tiles(near_k, table, profile, inv_rc2, tiles, mem, tx_all, ty_all, m)
             acc_x = acc_x + ox
             acc_y = acc_y + oy
             if g == sheet_block:
