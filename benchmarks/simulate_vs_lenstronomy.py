@@ -111,11 +111,11 @@ def breakdown(args, settings) -> None:
     acc: dict[str, float] = defaultdict(float)
     calls: dict[str, int] = defaultdict(int)
     state = {"stage": None}
-    orig = {n: getattr(R, n) for n in ("_population_pass", "epl_deflection", "shear_deflection",
+    orig = {n: getattr(R, n) for n in ("_population_pass", "_main_lens_deflection", "shear_deflection",
                                        "multipole_deflection", "sersic_ellipse_from_magnitude", "convolve",
                                        "multi_plane_ray_shoot", "pixelated_light", "_stage", "_pack",
                                        "_flat_table")}
-    orig_nf = {n: getattr(NF, n) for n in ("member_rungs", "_tile_lists", "_near_on_tiles", "_far_on_tiles")}
+    orig_nf = {n: getattr(NF, n) for n in ("member_rungs", "_near_pairs", "_near_on_tiles", "_far_on_tiles")}
 
     def timed(name, fn, label=None):
         def w(*a, **k):
@@ -135,10 +135,10 @@ def breakdown(args, settings) -> None:
     R._population_pass = timed("pop", orig["_population_pass"],
                                lambda a: f"population pass: {state['stage']} ({a[0].profile})")
     NF.member_rungs = timed("  split: member radii (circle peaks)", orig_nf["member_rungs"])
-    NF._tile_lists = timed("  split: tile lists", orig_nf["_tile_lists"])
+    NF._near_pairs = timed("  split: tile lists", orig_nf["_near_pairs"])
     NF._near_on_tiles = timed("  split: near field on tiles", orig_nf["_near_on_tiles"])
     NF._far_on_tiles = timed("  split: exact far field in rough tiles", orig_nf["_far_on_tiles"])
-    R.epl_deflection = timed("main-lens EPL (n_terms_main)", orig["epl_deflection"])
+    R._main_lens_deflection = timed("main-lens EPL (n_terms_main)", orig["_main_lens_deflection"])
     R.shear_deflection = timed("shear", orig["shear_deflection"])
     R.multipole_deflection = timed("multipoles", orig["multipole_deflection"])
     R.sersic_ellipse_from_magnitude = timed("Sérsic (source + lens light)", orig["sersic_ellipse_from_magnitude"])

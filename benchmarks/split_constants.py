@@ -7,12 +7,16 @@ ratio of the worst interpolation error over the grid (the image's 100 × 100 poi
 the member anywhere on it, edges included) to the member's largest |α| on
 the circle r = r_c (4 diagonal directions, as :func:`subslope.nearfar.member_rungs` computes it)
 is recorded; C_p(ρ) is the worst ratio over the random members times ``--safety``.
-Members: EPL with γ ~ U(1.01, 2.99), e ≤ 0.28 and any orientation; NFW and tNFW with
-r_s / h ~ logU(0.1, 30) and τ ~ U(1, 30), when their pair kernels are available.
+Members, one class of constants each: EPL with γ uniform in each class of
+:data:`subslope.nearfar.EPL_GAMMA_EDGES` (1.01 … 2.99), e ≤ 0.28 and any orientation;
+NFW and tNFW with r_s / h ~ logU(0.1, 30) and τ ~ U(1, 30). The EPL constants depend
+on γ (steep members, γ > 2.5, need up to 4× larger ones than γ ≈ 2), so members get
+the constants of their own γ class.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/split_constants.py [--members 60]
 
-Prints a table and the ``ERROR_CONSTANTS`` literal for ``subslope/nearfar.py``.
+Prints a table and the ``ERROR_CONSTANTS`` / ``EDGE_ERROR_CONSTANTS`` literals for
+``subslope/nearfar.py``.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ F64 = torch.float64
 
 
 def random_members(profile: str, n: int, h: float, m: int, rng: np.random.Generator,
-                   where: str) -> list[dict[str, torch.Tensor]]:
+                   where: str, gamma: tuple[float, float] = (1.01, 2.99)) -> list[dict[str, torch.Tensor]]:
     out = []
     for _ in range(n):
         if where == "interior":  # centre region: the member's zone and stencils stay inside
@@ -39,7 +43,7 @@ def random_members(profile: str, n: int, h: float, m: int, rng: np.random.Genera
         if profile == "epl":
             e = rng.uniform(0, 0.28)
             phi = rng.uniform(0, np.pi)
-            p = {"amp": 1.0, "gamma": rng.uniform(1.01, 2.99), "e1": e * np.cos(2 * phi), "e2": e * np.sin(2 * phi)}
+            p = {"amp": 1.0, "gamma": rng.uniform(*gamma), "e1": e * np.cos(2 * phi), "e2": e * np.sin(2 * phi)}
         else:
             r_s = h * np.exp(rng.uniform(np.log(0.1), np.log(30)))
             p = {"r_s": r_s, "alpha_rs": 1.0}
@@ -50,29 +54,30 @@ def random_members(profile: str, n: int, h: float, m: int, rng: np.random.Genera
     return out
 
 
-def worst_ratio(profile: str, members, rho: float, order: int, spacing: int, m: int) -> float:
+def worst_ratios(profile: str, members, rho: float, orders, spacing: int, m: int) -> dict[int, float]:
+    """Worst ratio (interpolation error / max |α| on r = r_c) over ``members`` per order."""
     h = float(spacing)  # grid step = 1
     ax1 = torch.arange(m, dtype=F64) - (m - 1) / 2
     yy, xx = torch.meshgrid(ax1, ax1, indexing="ij")
     x, y = xx.reshape(1, -1), yy.reshape(1, -1)
     nodes = NF.node_indices(m, spacing)
-    L = NF.interpolation_matrix(m, nodes, order, F64, "cpu")
     nd = torch.as_tensor(nodes)
-    worst = 0.0
+    mats = {o: NF.interpolation_matrix(m, nodes, o, F64, "cpu") for o in orders}
+    worst = dict.fromkeys(orders, 0.0)
+    rc = rho * h
     for p in members:
         table = PK.member_table(profile, p, 14)
-        rc = rho * h
         fx, fy, _ = PK.far_sums(x, y, table, profile, torch.full((1, 1), 1.0 / rc**2, dtype=F64))
-        err = 0.0
-        for f in (fx, fy):
-            g = f.reshape(m, m)
-            gi = L @ g[nd][:, nd] @ L.T
-            err = max(err, float((gi - g).abs().max()))
         rows = [table[:, k, :, None] for k in range(table.shape[1])]
         ang = torch.arange(4, dtype=F64) * (np.pi / 2) + np.pi / 4
         cax, cay, _ = PK.PAIR_FUNCTIONS[profile](rows[0] + rc * torch.cos(ang), rows[1] + rc * torch.sin(ang), rows)
         bound = float(torch.hypot(cax, cay).max())
-        worst = max(worst, err / bound)
+        for o, L in mats.items():
+            err = 0.0
+            for f in (fx, fy):
+                g = f.reshape(m, m)
+                err = max(err, float((L @ g[nd][:, nd] @ L.T - g).abs().max()))
+            worst[o] = max(worst[o], err / bound)
     return worst
 
 
@@ -86,30 +91,36 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     rng = np.random.default_rng(args.seed)
-    profiles = [p for p in ("epl", "nfw", "tnfw") if p in PK.PAIR_FUNCTIONS]
+    edges = (1.01, *NF.EPL_GAMMA_EDGES, 2.99)
+    classes = [("epl", (lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])] + [("nfw", None), ("tnfw", None)]
     tables = {}
     for where in ("interior", "edge"):
         # interior: a grid large enough that no zone or stencil reaches an edge
         m = 2 * int(np.ceil((NF.RHO_LADDER[-1] + 5) * args.spacing)) + 1 if where == "interior" else args.grid
-        pop = {p: random_members(p, args.members, float(args.spacing), m, rng, where) for p in profiles}
-        consts = {}
-        print(f"\n{where}: profiles {profiles}, {args.members} members each, spacing {args.spacing}, grid {m}²")
-        print("| order | ρ | " + " | ".join(profiles) + " | C_p(ρ) |")
-        print("|---|---|" + "---|" * len(profiles) + "---|")
-        for order in (4, 6, 8):
-            row = []
-            for rho in NF.RHO_LADDER:
-                w = {p: worst_ratio(p, pop[p], rho, order, args.spacing, m) for p in profiles}
-                c = args.safety * max(w.values())
-                row.append(c)
-                print(f"| {order} | {rho:g} | " + " | ".join(f"{w[p]:.2e}" for p in profiles) + f" | {c:.2e} |",
-                      flush=True)
-            consts[order] = row
+        print(f"\n{where}: {args.members} members per class, spacing {args.spacing}, grid {m}²")
+        print("| class | order | " + " | ".join(f"ρ={r:g}" for r in NF.RHO_LADDER) + " |")
+        print("|---|---|" + "---|" * len(NF.RHO_LADDER))
+        consts: dict = {}
+        for profile, gam in classes:
+            members = random_members(profile, args.members, float(args.spacing), m, rng, where,
+                                     **({"gamma": gam} if gam else {}))
+            ratios = [worst_ratios(profile, members, rho, (4, 6, 8), args.spacing, m) for rho in NF.RHO_LADDER]
+            for order in (4, 6, 8):
+                row = [args.safety * r[order] for r in ratios]
+                consts.setdefault(profile, {}).setdefault(order, []).append(row)
+                label = f"{profile} γ∈[{gam[0]:g}, {gam[1]:g})" if gam else profile
+                print(f"| {label} | {order} | " + " | ".join(f"{c:.2g}" for c in row) + " |", flush=True)
         tables[where] = consts
     for where, name in (("interior", "ERROR_CONSTANTS"), ("edge", "EDGE_ERROR_CONSTANTS")):
         print(f"{name} = {{")
-        for order, row in tables[where].items():
-            print(f"    {order}: (" + ", ".join(f"{v:.2g}" for v in row) + "),")
+        for profile, by_order in tables[where].items():
+            print(f"    {profile!r}: {{")
+            for order, rows in by_order.items():
+                print(f"        {order}: (")
+                for row in rows:
+                    print("            (" + ", ".join(f"{v:.2g}" for v in row) + "),")
+                print("        ),")
+            print("    },")
         print("}")
 
 

@@ -109,24 +109,121 @@ def interpolation_matrix(m: int, nodes: tuple[int, ...], order: int, dtype, devi
 
 
 #: Ladder of split radii ρ = r_c / h (in node spacings) a member may get.
-RHO_LADDER = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
-#: ``C_p(ρ)`` per interpolation order ``p``: bound on the far field's interpolation
-#: error of one member divided by its largest ``|α|`` on the circle ``r = r_c``, on
-#: :data:`RHO_LADDER`, for a member whose zone and stencils stay inside the grid
-#: (``benchmarks/split_constants.py``: worst case over random EPL, NFW and tNFW
-#: members, × 2; the elementwise maximum of two runs with different members).
-ERROR_CONSTANTS = {
-    4: (1.1, 0.7, 0.61, 0.28, 0.13, 0.039, 0.015, 0.0036, 0.0012, 0.00031, 0.00015),
-    6: (1, 0.77, 0.63, 0.24, 0.09, 0.021, 0.0068, 0.0017, 0.00081, 0.00027, 0.00012),
-    8: (0.95, 0.8, 0.64, 0.21, 0.071, 0.014, 0.0044, 0.0016, 0.00073, 0.00023, 0.0001),
+RHO_LADDER = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 24.0, 32.0)
+#: Upper γ edges of the classes of EPL members with their own error constants (the
+#: first class starts at γ = 1, the last ends at 3).
+EPL_GAMMA_EDGES = (1.5, 1.8, 2.2, 2.5)
+#: ``C_p(ρ)``: bound on the far field's interpolation error of one member divided by
+#: its largest ``|α|`` on the circle ``r = r_c``, on :data:`RHO_LADDER`, for a member
+#: whose zone and stencils stay inside the grid; per profile and interpolation order
+#: ``p``, one row per class (EPL: the γ classes of :data:`EPL_GAMMA_EDGES`).
+#: ``benchmarks/split_constants.py``: worst case over random members of the class × 2.
+ERROR_CONSTANTS: dict[str, dict[int, tuple[tuple[float, ...], ...]]] = {
+    "epl": {
+        4: (
+            (0.72, 0.54, 0.31, 0.18, 0.11, 0.066, 0.042, 0.019, 0.01, 0.0058, 0.0036, 0.0015, 0.00074, 0.00028, 6.8e-05, 2.4e-05),
+            (0.71, 0.61, 0.39, 0.21, 0.12, 0.075, 0.049, 0.022, 0.011, 0.0063, 0.0038, 0.0016, 0.00079, 0.0003, 7.1e-05, 2.5e-05),
+            (0.77, 0.62, 0.46, 0.27, 0.15, 0.095, 0.06, 0.027, 0.014, 0.0079, 0.0048, 0.0019, 0.00099, 0.00035, 9.8e-05, 3.8e-05),
+            (0.88, 0.67, 0.5, 0.31, 0.2, 0.12, 0.076, 0.036, 0.018, 0.01, 0.0063, 0.0027, 0.0013, 0.00043, 0.00011, 4.7e-05),
+            (1.1, 0.72, 0.6, 0.43, 0.29, 0.19, 0.13, 0.067, 0.037, 0.022, 0.014, 0.0061, 0.0031, 0.0011, 0.00023, 7.6e-05),
+        ),
+        6: (
+            (0.74, 0.54, 0.28, 0.13, 0.073, 0.045, 0.027, 0.011, 0.005, 0.0029, 0.0018, 0.00077, 0.00038, 0.00012, 2.3e-05, 7.1e-06),
+            (0.73, 0.64, 0.37, 0.17, 0.079, 0.046, 0.028, 0.01, 0.0058, 0.0035, 0.0022, 0.00094, 0.00046, 0.00014, 2.7e-05, 8e-06),
+            (0.75, 0.66, 0.45, 0.22, 0.1, 0.053, 0.029, 0.01, 0.0053, 0.0035, 0.0023, 0.0012, 0.00064, 0.00024, 5.4e-05, 1.9e-05),
+            (0.82, 0.73, 0.51, 0.28, 0.15, 0.073, 0.039, 0.014, 0.0058, 0.0033, 0.0024, 0.0012, 0.0007, 0.00028, 7.7e-05, 3.1e-05),
+            (1, 0.78, 0.64, 0.42, 0.25, 0.15, 0.093, 0.041, 0.02, 0.011, 0.0065, 0.0026, 0.0012, 0.00038, 8.1e-05, 3.4e-05),
+        ),
+        8: (
+            (0.74, 0.54, 0.26, 0.12, 0.065, 0.037, 0.021, 0.0087, 0.0041, 0.0023, 0.0013, 0.00054, 0.00026, 8e-05, 1.5e-05, 8.2e-06),
+            (0.74, 0.65, 0.35, 0.14, 0.069, 0.038, 0.021, 0.0099, 0.0053, 0.0029, 0.0017, 0.0007, 0.00033, 9.9e-05, 1.8e-05, 8.4e-06),
+            (0.77, 0.68, 0.44, 0.19, 0.075, 0.038, 0.02, 0.009, 0.0052, 0.0031, 0.0021, 0.00099, 0.00052, 0.00019, 4.1e-05, 1.4e-05),
+            (0.79, 0.75, 0.51, 0.25, 0.11, 0.049, 0.022, 0.0084, 0.0048, 0.0032, 0.0022, 0.0011, 0.00059, 0.00024, 6.2e-05, 2.4e-05),
+            (0.95, 0.81, 0.65, 0.4, 0.22, 0.12, 0.074, 0.031, 0.015, 0.0079, 0.0046, 0.0018, 0.00085, 0.00025, 6.8e-05, 2.9e-05),
+        ),
+    },
+    "nfw": {
+        4: (
+            (0.86, 0.7, 0.53, 0.34, 0.21, 0.14, 0.09, 0.043, 0.023, 0.013, 0.0083, 0.0037, 0.0018, 0.00061, 0.00019, 8.4e-05),
+        ),
+        6: (
+            (0.8, 0.75, 0.54, 0.3, 0.16, 0.089, 0.05, 0.018, 0.0079, 0.005, 0.0036, 0.0019, 0.0011, 0.0005, 0.00015, 6e-05),
+        ),
+        8: (
+            (0.81, 0.78, 0.54, 0.28, 0.13, 0.061, 0.03, 0.013, 0.0076, 0.0049, 0.0034, 0.0017, 0.001, 0.00043, 0.00012, 5e-05),
+        ),
+    },
+    "tnfw": {
+        4: (
+            (0.92, 0.76, 0.6, 0.42, 0.28, 0.18, 0.13, 0.065, 0.036, 0.021, 0.014, 0.0066, 0.0035, 0.0012, 0.00034, 0.00017),
+        ),
+        6: (
+            (0.85, 0.82, 0.62, 0.39, 0.22, 0.13, 0.082, 0.036, 0.017, 0.0094, 0.0055, 0.0026, 0.0016, 0.00075, 0.00025, 0.00011),
+        ),
+        8: (
+            (0.88, 0.85, 0.63, 0.37, 0.19, 0.11, 0.062, 0.025, 0.012, 0.0061, 0.0044, 0.0025, 0.0015, 0.00069, 0.00023, 0.0001),
+        ),
+    },
 }
 #: The same for members anywhere on the 100 × 100 image, edges included (one-sided
 #: stencils at the edges are less accurate).
-EDGE_ERROR_CONSTANTS = {
-    4: (1.2, 0.84, 0.75, 0.35, 0.17, 0.046, 0.017, 0.0041, 0.0014, 0.00035, 0.00016),
-    6: (1.6, 0.95, 1.1, 0.61, 0.25, 0.057, 0.019, 0.0036, 0.0014, 0.00046, 0.0002),
-    8: (2.9, 3.5, 3.1, 1.2, 0.34, 0.049, 0.021, 0.007, 0.003, 0.0009, 0.00038),
+EDGE_ERROR_CONSTANTS: dict[str, dict[int, tuple[tuple[float, ...], ...]]] = {
+    "epl": {
+        4: (
+            (0.8, 0.57, 0.38, 0.21, 0.13, 0.093, 0.062, 0.031, 0.018, 0.01, 0.0064, 0.0029, 0.0015, 0.00047, 0.00012, 4.4e-05),
+            (0.73, 0.62, 0.46, 0.27, 0.17, 0.1, 0.068, 0.039, 0.019, 0.011, 0.007, 0.0029, 0.0014, 0.0005, 0.00012, 4.4e-05),
+            (0.92, 0.68, 0.51, 0.36, 0.21, 0.12, 0.087, 0.046, 0.022, 0.013, 0.0079, 0.0032, 0.0015, 0.00055, 0.00014, 5.3e-05),
+            (0.94, 0.83, 0.62, 0.4, 0.26, 0.17, 0.11, 0.052, 0.027, 0.016, 0.01, 0.0046, 0.0026, 0.00084, 0.00017, 7.1e-05),
+            (1.1, 0.98, 0.72, 0.56, 0.38, 0.26, 0.17, 0.085, 0.047, 0.032, 0.022, 0.011, 0.0057, 0.002, 0.00043, 0.00014),
+        ),
+        6: (
+            (0.93, 0.97, 0.71, 0.48, 0.21, 0.17, 0.093, 0.043, 0.021, 0.011, 0.0058, 0.0025, 0.0013, 0.00044, 9.3e-05, 2.8e-05),
+            (0.97, 1, 0.83, 0.66, 0.28, 0.18, 0.12, 0.046, 0.02, 0.01, 0.0063, 0.0026, 0.0014, 0.00042, 8.9e-05, 2.7e-05),
+            (1, 1, 1.1, 0.71, 0.32, 0.19, 0.12, 0.046, 0.02, 0.011, 0.0067, 0.0033, 0.0017, 0.00061, 0.00014, 4.5e-05),
+            (1.2, 1.3, 1.1, 0.85, 0.47, 0.26, 0.14, 0.048, 0.023, 0.012, 0.0069, 0.004, 0.0024, 0.00093, 0.00024, 9.2e-05),
+            (2, 1.3, 1.3, 1.1, 0.65, 0.44, 0.3, 0.14, 0.07, 0.039, 0.023, 0.0096, 0.0046, 0.0014, 0.00028, 9e-05),
+        ),
+        8: (
+            (1.6, 2, 1.7, 0.89, 0.47, 0.3, 0.19, 0.075, 0.04, 0.017, 0.0093, 0.0044, 0.0021, 0.00061, 0.00013, 3.5e-05),
+            (1.2, 2, 1.7, 1.2, 0.53, 0.34, 0.2, 0.077, 0.034, 0.019, 0.012, 0.0047, 0.0022, 0.00067, 0.00012, 3.6e-05),
+            (2.1, 2.5, 3, 1.7, 0.65, 0.37, 0.22, 0.074, 0.034, 0.023, 0.015, 0.0069, 0.0035, 0.0012, 0.00025, 8e-05),
+            (2.5, 2.6, 2.5, 1.8, 0.96, 0.47, 0.25, 0.079, 0.034, 0.019, 0.012, 0.0062, 0.0037, 0.0016, 0.00044, 0.00017),
+            (4.3, 3.3, 3.4, 2.4, 1.6, 0.98, 0.62, 0.26, 0.12, 0.065, 0.037, 0.015, 0.0068, 0.002, 0.00044, 0.00019),
+        ),
+    },
+    "nfw": {
+        4: (
+            (0.84, 0.88, 0.58, 0.42, 0.26, 0.16, 0.099, 0.057, 0.034, 0.02, 0.012, 0.0056, 0.0029, 0.00098, 0.00028, 0.00013),
+        ),
+        6: (
+            (0.82, 1, 1, 0.58, 0.46, 0.3, 0.18, 0.068, 0.03, 0.018, 0.011, 0.0045, 0.0027, 0.0012, 0.00033, 0.00013),
+        ),
+        8: (
+            (2.1, 3.1, 2, 1.5, 1.1, 0.6, 0.3, 0.09, 0.048, 0.032, 0.022, 0.011, 0.0066, 0.0027, 0.00074, 0.00029),
+        ),
+    },
+    "tnfw": {
+        4: (
+            (1, 0.82, 0.76, 0.57, 0.41, 0.28, 0.2, 0.098, 0.053, 0.033, 0.021, 0.01, 0.0052, 0.0019, 0.00048, 0.00023),
+        ),
+        6: (
+            (1.2, 1.2, 1.3, 1.1, 0.67, 0.46, 0.31, 0.14, 0.073, 0.04, 0.023, 0.0093, 0.0054, 0.0026, 0.00088, 0.00039),
+        ),
+        8: (
+            (2.8, 2.2, 2.8, 2.6, 1.7, 1, 0.62, 0.26, 0.13, 0.067, 0.038, 0.015, 0.0075, 0.0035, 0.0013, 0.00061),
+        ),
+    },
 }
+
+
+def _constant_class(table: Tensor, profile: str) -> Tensor:
+    """Row of the error-constant tables of each member ``(b, N)`` (long): the γ class
+    for EPL (table row 8 is ``−(γ − 1)/2``), 0 otherwise."""
+    if profile != "epl":
+        return torch.zeros(table[:, 0].shape, dtype=torch.long, device=table.device)
+    gamma = 1.0 - 2.0 * table[:, 8]
+    edges = torch.as_tensor(EPL_GAMMA_EDGES, dtype=table.dtype, device=table.device)
+    return torch.bucketize(gamma.contiguous(), edges)
 
 
 def _live(table: Tensor, profile: str) -> Tensor:
@@ -225,39 +322,29 @@ def _far_on_tiles(far_k, tx: Tensor, ty: Tensor, table: Tensor, profile: str, in
     return res
 
 
-def _tile_lists(v: np.ndarray, u: np.ndarray, radius: np.ndarray, live: np.ndarray, n_tiles: int, tile: int):
+def _near_pairs(v: Tensor, u: Tensor, radius: Tensor, live: Tensor, n_tiles: int, tile: int):
     """(tile, member) pairs of every live member and every tile whose box comes within
     ``radius`` grid steps of the member's grid position ``(v, u)``.
 
-    Inputs ``(b, N)`` numpy arrays; tiles of image ``k`` are numbered
-    ``k·n_tiles² + J·n_tiles + I`` (tile ``J`` holds grid rows ``[J·t, (J+1)·t)``).
-    Returns ``(tiles, members)``, ``(n_pairs,)`` int64 arrays sorted by tile (stable);
-    ``members`` index the flattened ``(b·N)`` members.
+    Inputs ``(b, N)``; tiles of image ``k`` are numbered ``k·n_tiles² + J·n_tiles + I``
+    (tile ``J`` holds grid rows ``[J·t, (J+1)·t)``). Returns ``(tiles, members)``,
+    ``(n_pairs,)`` long tensors sorted by tile (then member); ``members`` index the
+    flattened ``(b·N)`` members. One dense ``(b, n_t, n_t, N)`` test of the box
+    distances: no per-member loops, no host round trip but the final ``nonzero``.
     """
     b, n = v.shape
-    last = n_tiles - 1
-    v, u, radius = v.reshape(-1), u.reshape(-1), radius.reshape(-1)
-    j0 = np.clip(np.floor((v - radius + 0.5) / tile), 0, last).astype(np.int64)
-    j1 = np.clip(np.floor((v + radius + 0.5) / tile), -1, last).astype(np.int64)
-    i0 = np.clip(np.floor((u - radius + 0.5) / tile), 0, last).astype(np.int64)
-    i1 = np.clip(np.floor((u + radius + 0.5) / tile), -1, last).astype(np.int64)
-    nj = np.maximum(j1 - j0 + 1, 0)
-    ni = np.maximum(i1 - i0 + 1, 0)
-    cnt = nj * ni * live.reshape(-1)
-    mem = np.repeat(np.arange(b * n), cnt)
-    k = np.arange(mem.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    ni_m = ni[mem]
-    J = j0[mem] + k // ni_m
-    I = i0[mem] + k % ni_m
-    # keep the tiles whose box [J·t − 1/2, (J+1)·t − 1/2] comes within radius of (v, u)
-    vm, um, rm = v[mem], u[mem], radius[mem]
-    dv = np.maximum(np.maximum(J * tile - 0.5 - vm, vm - (J * tile + tile - 0.5)), 0)
-    du = np.maximum(np.maximum(I * tile - 0.5 - um, um - (I * tile + tile - 0.5)), 0)
-    near = dv * dv + du * du <= rm * rm
-    mem, J, I = mem[near], J[near], I[near]
-    tiles = ((mem // n) * n_tiles + J) * n_tiles + I
-    order = np.argsort(tiles, kind="stable")
-    return tiles[order], mem[order]
+    lo = torch.arange(n_tiles, dtype=v.dtype, device=v.device) * tile - 0.5  # box [lo, lo + t]
+    hi = lo + tile
+
+    def gap(c: Tensor) -> Tensor:  # (b, n_t, N): distance from c to each box along one axis
+        c = c[:, None, :]
+        return torch.clamp(torch.maximum(lo[None, :, None] - c, c - hi[None, :, None]), min=0.0).square_()
+
+    r2 = torch.where(live, radius * radius, torch.full_like(radius, -1.0))
+    near = gap(v)[:, :, None, :] + gap(u)[:, None, :, :] <= r2[:, None, None, :]
+    idx = torch.nonzero(near)  # lexicographic: image, J, I, member
+    tiles = (idx[:, 0] * n_tiles + idx[:, 1]) * n_tiles + idx[:, 2]
+    return tiles, idx[:, 0] * n + idx[:, 3]
 
 
 def _tiled(v: Tensor, m: int, tile: int, fill: float) -> Tensor:
@@ -298,8 +385,12 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
 
     kw = {"dtype": table.dtype, "device": table.device}
     rho = torch.as_tensor(RHO_LADDER, **kw)
-    c_in = torch.as_tensor(ERROR_CONSTANTS[order], **kw)
-    c_edge = torch.as_tensor(EDGE_ERROR_CONSTANTS[order], **kw)
+    if profile not in ERROR_CONSTANTS or order not in ERROR_CONSTANTS[profile]:
+        known = {p: sorted(v) for p, v in ERROR_CONSTANTS.items()}
+        raise ValueError(f"no split error constants for profile {profile!r} and order {order}; known: {known}")
+    cls = _constant_class(table, profile)
+    c_in = torch.as_tensor(ERROR_CONSTANTS[profile][order], **kw)[cls]  # (b, N, L)
+    c_edge = torch.as_tensor(EDGE_ERROR_CONSTANTS[profile][order], **kw)[cls]
     amax = (peaks or circle_peaks)(table, profile, rho * h)  # (b, N, L)
     if half_width is None:
         c = c_edge
@@ -312,43 +403,42 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
     return ok.to(torch.int8).argmax(-1)
 
 
-def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: np.ndarray, mem: np.ndarray,
-                   tx_all: Tensor, ty_all: Tensor, m: int):
-    """Near field of the (tile, member) pairs on one ``m × m`` block: tiles are sorted by
-    their number of members and evaluated in :data:`N_GROUPS` groups, each padded to
-    its largest member count. ``tx_all, ty_all``: the block's rays as tiles
+def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: Tensor, mem: Tensor,
+                   tx_all: Tensor, ty_all: Tensor, m: int, max_elements: int):
+    """Near field of the (tile, member) pairs on one ``m × m`` block.
+
+    The members of each tile fill rows of :data:`ROW_SLOTS` slots (the last row of a
+    tile padded with a zero-weight slot), so the kernel
+    (:func:`subslope.pair_kernels.near_tile_sums`) sees one ``(rows, TILE², ROW_SLOTS)``
+    problem and padding costs at most one partial row per tile; the rows' sums are
+    added into their tiles. ``tx_all, ty_all``: the block's rays as tiles
     (:func:`_tiled`). Returns ``(ax, ay)`` ``(b, m²)`` and the κ sum ``(b,)``."""
     b, n_rows, n = table.shape
     device, dtype = tx_all.device, tx_all.dtype
     nt = -(-m // TILE)
     n_all = b * nt * nt
-    counts = np.bincount(tiles, minlength=n_all)
-    slot = np.arange(tiles.size) - (np.cumsum(counts) - counts)[tiles]
-    used = np.flatnonzero(counts)
-    order = np.argsort(-counts[used], kind="stable")
-    used = used[order]
-    cnt_used = counts[used]
-    rank = np.empty(n_all, dtype=np.int64)
-    rank[used] = np.arange(used.size)
-    pos = np.full((used.size, int(cnt_used[0])), b * n, dtype=np.int64)  # b·n: the padding column
-    pos[rank[tiles], slot] = mem
-    pos_t = torch.as_tensor(pos, device=device)
-    used_t = torch.as_tensor(used, device=device)
-    flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1).contiguous()
+    w = ROW_SLOTS
+    counts = torch.bincount(tiles, minlength=n_all)
+    rows_per = (counts + (w - 1)) // w
+    row_start = torch.cumsum(rows_per, 0) - rows_per
+    slot = torch.arange(tiles.numel(), device=device) - (torch.cumsum(counts, 0) - counts)[tiles]
+    n_r = int(rows_per.sum())
+    pos = torch.full((n_r, w), b * n, dtype=torch.long, device=device)  # b·n: the padding column
+    pos[row_start[tiles] + torch.div(slot, w, rounding_mode="floor"), slot % w] = mem
+    tile_of_row = torch.repeat_interleave(torch.arange(n_all, device=device), rows_per)
+    flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1)
     flat_irc = torch.cat([inv_rc2.reshape(-1), inv_rc2.new_zeros(1)])
     mask_all = torch.cat([torch.ones(b * n, dtype=dtype, device=device), torch.zeros(1, dtype=dtype, device=device)])
-    tx, ty = tx_all[used_t], ty_all[used_t]
-    outs = []
-    bounds = np.unique(np.linspace(0, used.size, N_GROUPS + 1).astype(int))
-    for g0, g1 in zip(bounds[:-1], bounds[1:]):
-        p = pos_t[g0:g1, :int(cnt_used[g0])].contiguous()
+    q = TILE * TILE
+    full = torch.zeros(3, n_all, q, dtype=dtype, device=device)
+    step = max(1, max_elements // (q * w))
+    for r0 in range(0, n_r, step):
+        p = pos[r0:r0 + step]
+        t = tile_of_row[r0:r0 + step]
         fp = p.reshape(-1)
-        tab_p = torch.index_select(flat_tab, 1, fp).reshape(n_rows, *p.shape)
-        outs.append(torch.stack(near_k(tx[g0:g1], ty[g0:g1], tab_p, profile,
-                                       flat_irc.index_select(0, fp).reshape(p.shape),
-                                       mask_all.index_select(0, fp).reshape(p.shape))))
-    full = torch.zeros(3, n_all, TILE * TILE, dtype=dtype, device=device)
-    full[:, used_t] = torch.cat(outs, 1)
+        out = near_k(tx_all[t], ty_all[t], torch.index_select(flat_tab, 1, fp).reshape(n_rows, *p.shape), profile,
+                     flat_irc.index_select(0, fp).reshape(p.shape), mask_all.index_select(0, fp).reshape(p.shape))
+        full.index_add_(1, t, torch.stack(out))
     return _untiled(full[0], b, m, TILE), _untiled(full[1], b, m, TILE), full[2].reshape(b, -1).sum(1)
 
 
@@ -356,8 +446,8 @@ def _near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: 
 #: population of N > this many members gets ``split_tolerance · REFERENCE_MEMBERS / N``.
 REFERENCE_MEMBERS = 1000
 
-#: Groups of tiles (by member count) of the near-field pass: one kernel call each.
-N_GROUPS = 8
+#: Member slots per row of the near-field pass (:func:`_near_on_tiles`).
+ROW_SLOTS = 32
 
 
 def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[GridBlock],
@@ -456,9 +546,10 @@ def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[G
         else:
             v, u = _image_position(cx, cy, blk, None, None)
             radius = r_c / blk.step + margin
-        tiles, mem = _tile_lists(*(t.detach().cpu().numpy() for t in (v, u, radius, live)), nt, TILE)
-        if tiles.size:
-            ox, oy, ok_ = _near_on_tiles(near_k, table, profile, inv_rc2, tiles, mem, tx_all, ty_all, m)
+        tiles, mem = _near_pairs(v, u, radius, live, nt, TILE)
+        if tiles.numel():
+            ox, oy, ok_ = _near_on_tiles(near_k, table, profile, inv_rc2, tiles, mem, tx_all, ty_all, m,
+                                         max_elements)
             acc_x = acc_x + ox
             acc_y = acc_y + oy
             if g == sheet_block:

@@ -9,8 +9,8 @@ per-pair arithmetic is kept minimal:
    whose rows 0 and 1 are the centre ``(cx, cy)``;
 2. a *pair function* (:func:`epl_pair`, and one per profile in :data:`PAIR_FUNCTIONS`)
    evaluates ``(alpha_x, alpha_y, kappa)`` of one member at one point from the table
-   rows, with no branch and no per-member transcendental (EPL: one ``log`` and one
-   ``exp`` per pair);
+   rows, with no branch and no per-member transcendental (EPL: one power ``R^{-t}``
+   per pair, :func:`power`: float32 by bit arithmetic and two short polynomials);
 3. the kernels below reduce over members (:func:`direct_sums`, :func:`far_sums`,
    :func:`near_tile_sums`). Under ``torch.compile`` each is one fused loop that never
    materialises an ``(N, Q)`` intermediate (measured: 1.9 ns per EPL pair, float32, one
@@ -29,8 +29,10 @@ so their table rows scale every output to exact zeros.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -43,10 +45,12 @@ __all__ = [
     "PAIR_FUNCTIONS",
     "TABLE_FUNCTIONS",
     "epl_table",
+    "power",
     "epl_pair",
     "member_table",
     "split_weight",
     "direct_sums",
+    "direct_sums_few",
     "far_sums",
     "near_tile_sums",
     "circle_peaks",
@@ -54,6 +58,50 @@ __all__ = [
 
 
 # ------------------------------------------------------------------------------- EPL
+def _chebyshev_fit(fn, lo: float, hi: float, degree: int) -> tuple[float, ...]:
+    """Monomial coefficients (lowest first) of the least-squares fit of ``fn`` at 400
+    Chebyshev points of ``[lo, hi]`` (float64; within a few % of the minimax error)."""
+    t = np.cos(np.pi * (np.arange(400) + 0.5) / 400)
+    xs = 0.5 * (hi + lo) + 0.5 * (hi - lo) * t
+    return tuple(float(c) for c in np.polynomial.polynomial.polyfit(xs, fn(xs), degree))
+
+
+_SQRT_HALF = math.sqrt(0.5)
+#: ``log2(1 + x) / x`` on ``x ∈ [√½ − 1, √2 − 1]``, degree 7: relative error 1.7e-7.
+_LOG2_COEF = _chebyshev_fit(lambda x: np.log2(1 + x) / np.where(x == 0, 1, x) + (x == 0) / math.log(2),
+                            _SQRT_HALF - 1, math.sqrt(2) - 1, 7)
+#: ``2^f`` on ``f ∈ [−1/2, 1/2]``, degree 5: relative error 1.0e-7.
+_EXP2_COEF = _chebyshev_fit(lambda f: 2.0 ** f, -0.5, 0.5, 5)
+
+
+def _horner(x: Tensor, coef: tuple[float, ...]) -> Tensor:
+    acc = coef[-2] + x * coef[-1]
+    for c in coef[-3::-1]:
+        acc = c + x * acc
+    return acc
+
+
+def power(r2: Tensor, ex) -> Tensor:
+    """``r2 ** ex`` for normal ``r2 > 0`` and ``ex·log2(r2)`` within ±126.
+
+    float64 (the reference path): ``exp(ex·ln r2)``. float32: without library calls:
+    ``r2 = 2^k m`` with ``m ∈ [√½, √2)`` read from the bits, ``log2 m`` and ``2^f`` (the
+    fraction of ``y = ex·log2 r2``) by the polynomials :data:`_LOG2_COEF` /
+    :data:`_EXP2_COEF`, and ``2^round(y)`` written into the exponent bits. Relative
+    error ≤ 3e-7 plus the float32 rounding of ``y`` (as for ``exp``/``log``); measured
+    against float64 in ``tests/test_pair_kernels.py``.
+    """
+    if r2.dtype != torch.float32:
+        return torch.exp(ex * torch.log(r2))
+    i = r2.view(torch.int32) + (0x3F800000 - 0x3F3504F3)
+    k = ((i >> 23) - 127).to(torch.float32)
+    x = ((i & 0x7FFFFF) + 0x3F3504F3).view(torch.float32) - 1.0
+    y = ex * (k + x * _horner(x, _LOG2_COEF))
+    n = torch.round(y)
+    scale = ((n.to(torch.int32) + 127) << 23).view(torch.float32)
+    return _horner(y - n, _EXP2_COEF) * scale
+
+
 def epl_table(p: dict[str, Tensor], n_terms: int) -> Tensor:
     """EPL member table ``(b, 11 + n_terms - 1, N)`` from ``(b, N)`` parameters
     ``amp, gamma, e1, e2, x, y`` (see :mod:`subslope.profiles.epl`).
@@ -98,7 +146,7 @@ def epl_pair(x: Tensor, y: Tensor, rows: Sequence[Tensor]) -> tuple[Tensor, Tens
         Fi = (X * Y) * (2 * mf * inv) * b1
     else:
         Fr, Fi = torch.ones_like(ur), torch.zeros_like(ur)
-    rp = torch.exp(ex * torch.log(R2))
+    rp = power(R2, ex)
     sc = sa * rp
     axf = sc * (X * Fr - Y * Fi)
     ayf = sc * (X * Fi + Y * Fr)
@@ -142,6 +190,16 @@ def direct_sums(x: Tensor, y: Tensor, table: Tensor, profile: str, with_kappa: b
     each ``(b, Q)`` (``kappa`` None unless ``with_kappa``). ``table``: ``(b, M, N)``."""
     ax, ay, k = PAIR_FUNCTIONS[profile](x[:, :, None], y[:, :, None], _rows_members_last(table))
     return ax.sum(-1), ay.sum(-1), (k.sum(-1) if with_kappa else None)
+
+
+def direct_sums_few(x: Tensor, y: Tensor, table: Tensor, profile: str, with_kappa: bool = True):
+    """:func:`direct_sums` for a population of a few members (a line-of-sight plane, the
+    main lens): the members are the outer axis and the points the vectorised one.
+    (:func:`direct_sums` vectorises over the members, which for 1–30 members leaves
+    most SIMD lanes empty: measured 1 ms against 0.1 ms for 2 members at 10⁴ points.)"""
+    rows = [table[:, k, :, None] for k in range(table.shape[1])]  # (b, N, 1)
+    ax, ay, k = PAIR_FUNCTIONS[profile](x[:, None, :], y[:, None, :], rows)
+    return ax.sum(1), ay.sum(1), (k.sum(1) if with_kappa else None)
 
 
 def far_sums(x: Tensor, y: Tensor, table: Tensor, profile: str, inv_rc2: Tensor):

@@ -57,9 +57,10 @@ from subslope.instrument import convolve
 from subslope.light.pixelated import pixelated_light
 from subslope.light.sersic import multi_sersic_from_magnitude, sersic_ellipse_from_magnitude
 from subslope.population import pack_ragged
-from subslope.profiles.epl import epl_deflection, theta_e_to_amp
+from subslope.profiles.epl import theta_e_to_amp
 from subslope.nearfar import GridBlock, split_pass
-from subslope.pair_kernels import circle_peaks, direct_sums, far_sums, member_table, near_tile_sums
+from subslope.pair_kernels import (circle_peaks, direct_sums, direct_sums_few, epl_table, far_sums,
+                                   member_table, near_tile_sums)
 from subslope.profiles.multipole import multipole_deflection
 from subslope.profiles.shear import shear_deflection
 from subslope.raytrace import Plane, multi_plane_ray_shoot
@@ -145,9 +146,9 @@ class RenderSettings:
     chunk_members: int | None = None
     compile: str = "auto"
     population: str = "auto"
-    split_spacing: int = 3
+    split_spacing: int = 2
     split_order: int = 6
-    split_tolerance: float = 3e-5
+    split_tolerance: float = 2e-5
     split_min_members: int = 64
 
     def __post_init__(self) -> None:
@@ -215,7 +216,11 @@ def chunk_width(settings: RenderSettings, n_points: int, compiled: bool = True) 
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
 _MAX_KERNEL_GRAPHS = 64
-_KERNEL_FUNCTIONS = {"direct": direct_sums, "far": far_sums, "near": near_tile_sums, "peaks": circle_peaks}
+_KERNEL_FUNCTIONS = {"direct": direct_sums, "few": direct_sums_few, "far": far_sums, "near": near_tile_sums,
+                     "peaks": circle_peaks}
+#: Populations of fewer members than this are summed by ``direct_sums_few`` (members
+#: on the outer axis) instead of ``direct_sums`` (members vectorised).
+FEW_MEMBERS = 32
 
 
 @dataclass(frozen=True)
@@ -223,6 +228,7 @@ class _Kernels:
     """The population kernels of one render call (compiled or eager)."""
 
     direct: Any
+    few: Any
     far: Any
     near: Any
     peaks: Any
@@ -263,8 +269,8 @@ def _kernels(settings: RenderSettings, device: torch.device) -> _Kernels:
     if want and device.type == "cpu" and shutil.which("gcc") is None and shutil.which("cc") is None:
         want = False
     if not want:
-        return _Kernels(direct_sums, far_sums, near_tile_sums, circle_peaks, False)
-    return _Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "far", "near", "peaks")), True)
+        return _Kernels(direct_sums, direct_sums_few, far_sums, near_tile_sums, circle_peaks, False)
+    return _Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "few", "far", "near", "peaks")), True)
 
 
 # --------------------------------------------------------------------------- populations
@@ -354,8 +360,12 @@ def _population_pass(pop: _Pop, x: Tensor, y: Tensor, settings: RenderSettings, 
         ax, ay, k_sum = out
         k_sheet = -(k_sum / n_pix)[:, None]
         return ax + k_sheet * x, ay + k_sheet * y, k_sheet
-    w = chunk_width(settings, n_all, kernels.compiled)
     n = pop.table.shape[-1]
+    if n < FEW_MEMBERS and kernels.compiled:
+        ax, ay, kap = kernels.few(x, y, pop.table, pop.profile, True)
+        k_sheet = -(kap[:, n_all - n_pix:].sum(-1) / n_pix)[:, None]
+        return ax + k_sheet * x, ay + k_sheet * y, k_sheet
+    w = chunk_width(settings, n_all, kernels.compiled)
     ax = ay = kap = None
     for start in range(0, n, w):
         dax, day, dk = kernels.direct(x, y, pop.table[:, :, start:start + w].contiguous(), pop.profile, True)
@@ -365,6 +375,14 @@ def _population_pass(pop: _Pop, x: Tensor, y: Tensor, settings: RenderSettings, 
             ax, ay, kap = ax + dax, ay + day, kap + dk
     k_sheet = -(kap[:, n_all - n_pix:].sum(-1) / n_pix)[:, None]
     return ax + k_sheet * x, ay + k_sheet * y, k_sheet
+
+
+def _main_lens_deflection(x: Tensor, y: Tensor, table: Tensor, kernels: _Kernels) -> tuple[Tensor, Tensor]:
+    """Main-lens EPL deflection ``(b, P)`` from its one-member table ``(b, M, 1)``
+    (``n_terms_main`` series terms; the same arithmetic as
+    :func:`subslope.profiles.epl.epl_deflection`, as one fused kernel)."""
+    ax, ay, _ = kernels.few(x, y, table, "epl", False)
+    return ax, ay
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -472,14 +490,15 @@ def _render_group(idx: np.ndarray, macro: dict, psf: Tensor, settings: RenderSet
 
     lens_amp = theta_e_to_amp(par("theta_e"), par("gamma_ml"))
     lens = {kk: par(kk) for kk in ("gamma_ml", "lens_e1", "lens_e2", "lens_x", "lens_y")}
+    lens_table = epl_table({"amp": lens_amp, "gamma": lens["gamma_ml"], "e1": lens["lens_e1"],
+                            "e2": lens["lens_e2"], "x": lens["lens_x"], "y": lens["lens_y"]},
+                           settings.n_terms_main).contiguous()
     shear = {kk: par(kk) for kk in _GROUPS["shear"]} if _has(macro, "shear") else None
     mpole = {kk: par(kk) for kk in _GROUPS["multipoles"]} if _has(macro, "multipoles") else None
 
     def lens_plane(tx: Tensor, ty: Tensor, displaced: bool = True) -> tuple[Tensor, Tensor]:
         _stage("main_lens")
-        ax, ay = epl_deflection(tx, ty, lens_amp, lens["gamma_ml"], lens["lens_e1"], lens["lens_e2"],
-                                lens["lens_x"], lens["lens_y"], n_terms=settings.n_terms_main,
-                                validate=False)
+        ax, ay = _main_lens_deflection(tx, ty, lens_table, kernels)
         if shear is not None:
             _stage("shear")
             sx, sy = shear_deflection(tx, ty, shear["shear_g1"], shear["shear_g2"])
