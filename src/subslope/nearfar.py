@@ -22,15 +22,19 @@ ch. 8) with a compactly supported near part.
   too. Cost: ``N · (m/S)²`` pairs.
 * **Split radius per member.** The interpolation error of one member's far field is
   ``≤ C_p(ρ)·max|α_i(r_c)|`` with ``ρ = r_c/h`` (:data:`ERROR_CONSTANTS`, measured by
-  ``benchmarks/split_constants.py``). Each member gets the smallest ``ρ`` of
+  ``benchmarks/split_constants.py`` per profile and, for EPL members, per class of γ:
+  :data:`EPL_GAMMA_EDGES`; steep members need larger constants than γ ≈ 2 ones).
+  Each member gets the smallest ``ρ`` of
   :data:`RHO_LADDER` that meets ``split_tolerance`` (:func:`member_rungs`): the many
   small subhalos get small near zones, the few massive ones large ones. The errors of
   nearby members add (measured: the image error grows ∝ N), so above
   :data:`REFERENCE_MEMBERS` members the per-member tolerance shrinks ∝ 1/N.
 * **Near field** ``Σ_i α_i (1 − W_i)`` is exact: the grid is cut into ``TILE × TILE``
-  tiles and each tile sums the members whose near zone can reach it (one fused
-  reduction per group of tiles, :func:`subslope.pair_kernels.near_tile_sums`); points
-  beyond a member's ``r_c`` get exactly zero from it. The image-plane position of a
+  tiles and each tile sums the members whose near zone can reach it
+  (:func:`_near_pairs`: one dense box-distance test). The (tile, member) pairs fill
+  rows of :data:`ROW_SLOTS` member slots, one fused reduction for all rows
+  (:func:`subslope.pair_kernels.near_tile_sums`), whose sums are added into their
+  tiles; points beyond a member's ``r_c`` get exactly zero from it. The image-plane position of a
   member is found by two fixed-point steps ``θ ← c_i + d(θ)`` (``d``: the rays'
   displacement from the regular grid). With displaced rays the reach is widened by the
   largest displacement gradient ``G`` over the tiles around the member
@@ -216,6 +220,14 @@ EDGE_ERROR_CONSTANTS: dict[str, dict[int, tuple[tuple[float, ...], ...]]] = {
 }
 
 
+@lru_cache(maxsize=64)
+def _constants(profile: str, order: int, edge: bool, dtype, device) -> Tensor:
+    """:data:`ERROR_CONSTANTS` (or the edge ones) of a profile and order as a tensor
+    ``(classes, len(RHO_LADDER))``."""
+    return torch.as_tensor((EDGE_ERROR_CONSTANTS if edge else ERROR_CONSTANTS)[profile][order], dtype=dtype,
+                           device=device)
+
+
 def _constant_class(table: Tensor, profile: str) -> Tensor:
     """Row of the error-constant tables of each member ``(b, N)`` (long): the γ class
     for EPL (table row 8 is ``−(γ − 1)/2``), 0 otherwise."""
@@ -389,8 +401,8 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
         known = {p: sorted(v) for p, v in ERROR_CONSTANTS.items()}
         raise ValueError(f"no split error constants for profile {profile!r} and order {order}; known: {known}")
     cls = _constant_class(table, profile)
-    c_in = torch.as_tensor(ERROR_CONSTANTS[profile][order], **kw)[cls]  # (b, N, L)
-    c_edge = torch.as_tensor(EDGE_ERROR_CONSTANTS[profile][order], **kw)[cls]
+    c_in = _constants(profile, order, False, table.dtype, table.device)[cls]  # (b, N, L)
+    c_edge = _constants(profile, order, True, table.dtype, table.device)[cls]
     amax = (peaks or circle_peaks)(table, profile, rho * h)  # (b, N, L)
     if half_width is None:
         c = c_edge
