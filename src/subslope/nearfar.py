@@ -403,7 +403,13 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
     cls = _constant_class(table, profile)
     c_in = _constants(profile, order, False, table.dtype, table.device)[cls]  # (b, N, L)
     c_edge = _constants(profile, order, True, table.dtype, table.device)[cls]
-    amax = (peaks or circle_peaks)(table, profile, rho * h)  # (b, N, L)
+    if profile == "epl":
+        # the EPL is scale-free, |α(λx)| = λ^(2−γ) |α(x)|: one circle, scaled to each radius
+        gamma = 1.0 - 2.0 * table[:, 8]
+        one = (peaks or circle_peaks)(table, profile, rho[:1] * h)  # (b, N, 1)
+        amax = one * torch.pow(rho / rho[0], (2.0 - gamma)[..., None])
+    else:
+        amax = (peaks or circle_peaks)(table, profile, rho * h)  # (b, N, L)
     if half_width is None:
         c = c_edge
     else:

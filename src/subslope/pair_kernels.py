@@ -53,6 +53,7 @@ __all__ = [
     "split_weight",
     "direct_sums",
     "direct_sums_few",
+    "few_sums_with_sheet",
     "far_sums",
     "near_tile_sums",
     "circle_peaks",
@@ -202,6 +203,15 @@ def direct_sums_few(x: Tensor, y: Tensor, table: Tensor, profile: str, with_kapp
     rows = [table[:, k, :, None] for k in range(table.shape[1])]  # (b, N, 1)
     ax, ay, k = PAIR_FUNCTIONS[profile](x[:, None, :], y[:, None, :], rows)
     return ax.sum(1), ay.sum(1), (k.sum(1) if with_kappa else None)
+
+
+def few_sums_with_sheet(x: Tensor, y: Tensor, table: Tensor, profile: str, n_pix: int):
+    """:func:`direct_sums_few` plus the population's negative sheet in one graph:
+    ``κ_s = −mean(Σ_i κ_i)`` over the last ``n_pix`` points (the pixel-centre rays),
+    returned as ``(alpha_x + κ_s x, alpha_y + κ_s y, κ_s)`` with ``κ_s`` ``(b, 1)``."""
+    ax, ay, k = direct_sums_few(x, y, table, profile, True)
+    ks = -(k[:, k.shape[1] - n_pix:].sum(-1, keepdim=True) / n_pix)
+    return ax + ks * x, ay + ks * y, ks
 
 
 def far_sums(x: Tensor, y: Tensor, table: Tensor, profile: str, inv_rc2: Tensor):

@@ -60,7 +60,7 @@ from subslope.population import pack_ragged
 from subslope.profiles.epl import theta_e_to_amp
 from subslope.nearfar import GridBlock, split_pass
 from subslope.pair_kernels import (circle_peaks, direct_sums, direct_sums_few, epl_table, far_sums,
-                                   member_table, near_tile_sums)
+                                   few_sums_with_sheet, member_table, near_tile_sums)
 from subslope.profiles.multipole import multipole_deflection
 from subslope.profiles.shear import shear_deflection
 from subslope.raytrace import Plane, multi_plane_ray_shoot
@@ -216,8 +216,8 @@ def chunk_width(settings: RenderSettings, n_points: int, compiled: bool = True) 
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
 _MAX_KERNEL_GRAPHS = 64
-_KERNEL_FUNCTIONS = {"direct": direct_sums, "few": direct_sums_few, "far": far_sums, "near": near_tile_sums,
-                     "peaks": circle_peaks}
+_KERNEL_FUNCTIONS = {"direct": direct_sums, "few": direct_sums_few, "few_sheet": few_sums_with_sheet,
+                     "far": far_sums, "near": near_tile_sums, "peaks": circle_peaks}
 #: Populations of fewer members than this are summed by ``direct_sums_few`` (members
 #: on the outer axis) instead of ``direct_sums`` (members vectorised).
 FEW_MEMBERS = 32
@@ -229,6 +229,7 @@ class _Kernels:
 
     direct: Any
     few: Any
+    few_sheet: Any
     far: Any
     near: Any
     peaks: Any
@@ -269,8 +270,10 @@ def _kernels(settings: RenderSettings, device: torch.device) -> _Kernels:
     if want and device.type == "cpu" and shutil.which("gcc") is None and shutil.which("cc") is None:
         want = False
     if not want:
-        return _Kernels(direct_sums, direct_sums_few, far_sums, near_tile_sums, circle_peaks, False)
-    return _Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "few", "far", "near", "peaks")), True)
+        return _Kernels(direct_sums, direct_sums_few, few_sums_with_sheet, far_sums, near_tile_sums, circle_peaks,
+                        False)
+    return _Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "few", "few_sheet", "far", "near", "peaks")),
+                    True)
 
 
 # --------------------------------------------------------------------------- populations
@@ -362,9 +365,7 @@ def _population_pass(pop: _Pop, x: Tensor, y: Tensor, settings: RenderSettings, 
         return ax + k_sheet * x, ay + k_sheet * y, k_sheet
     n = pop.table.shape[-1]
     if n < FEW_MEMBERS and kernels.compiled:
-        ax, ay, kap = kernels.few(x, y, pop.table, pop.profile, True)
-        k_sheet = -(kap[:, n_all - n_pix:].sum(-1) / n_pix)[:, None]
-        return ax + k_sheet * x, ay + k_sheet * y, k_sheet
+        return kernels.few_sheet(x, y, pop.table, pop.profile, n_pix)
     w = chunk_width(settings, n_all, kernels.compiled)
     ax = ay = kap = None
     for start in range(0, n, w):
