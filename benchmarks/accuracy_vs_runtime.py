@@ -187,6 +187,7 @@ def pareto(points: np.ndarray) -> np.ndarray:
 
 def plot(rows: list[dict], path: str) -> None:
     import matplotlib
+    import matplotlib.ticker
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -207,6 +208,9 @@ def plot(rows: list[dict], path: str) -> None:
                         xytext=(3, 2), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xticks([v for v in (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0) if t.min() / 1.5 <= v <= t.max() * 1.5])
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.set_xlabel("s / image (1 CPU thread, median)")
         ax.set_ylabel(lab)
         ax.legend(fontsize=7, loc="upper right")
