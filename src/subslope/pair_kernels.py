@@ -61,12 +61,15 @@ __all__ = [
 
 
 # ------------------------------------------------------------------------------- EPL
-def _chebyshev_fit(fn, lo: float, hi: float, degree: int) -> tuple[float, ...]:
+def _chebyshev_fit(fn, lo: float, hi: float, degree: int) -> tuple[tuple[int, int], ...]:
     """Monomial coefficients (lowest first) of the least-squares fit of ``fn`` at 400
-    Chebyshev points of ``[lo, hi]`` (float64; within a few % of the minimax error)."""
+    Chebyshev points of ``[lo, hi]`` (float64; within a few % of the minimax error), as
+    exact integer ratios: under ``torch.compile(dynamic=True)`` a module-level float
+    becomes a graph input (wrapped in a tensor on every call), an ``int / int`` folds to
+    a literal (as in :mod:`subslope.nfw_pairs`)."""
     t = np.cos(np.pi * (np.arange(400) + 0.5) / 400)
     xs = 0.5 * (hi + lo) + 0.5 * (hi - lo) * t
-    return tuple(float(c) for c in np.polynomial.polynomial.polyfit(xs, fn(xs), degree))
+    return tuple(float(c).as_integer_ratio() for c in np.polynomial.polynomial.polyfit(xs, fn(xs), degree))
 
 
 _SQRT_HALF = math.sqrt(0.5)
@@ -77,10 +80,11 @@ _LOG2_COEF = _chebyshev_fit(lambda x: np.log2(1 + x) / np.where(x == 0, 1, x) + 
 _EXP2_COEF = _chebyshev_fit(lambda f: 2.0 ** f, -0.5, 0.5, 5)
 
 
-def _horner(x: Tensor, coef: tuple[float, ...]) -> Tensor:
-    acc = coef[-2] + x * coef[-1]
-    for c in coef[-3::-1]:
-        acc = c + x * acc
+def _horner(x: Tensor, coef: tuple[tuple[int, int], ...]) -> Tensor:
+    c = [n / d for n, d in coef]
+    acc = c[-2] + x * c[-1]
+    for v in c[-3::-1]:
+        acc = v + x * acc
     return acc
 
 
