@@ -127,3 +127,13 @@ def test_member_rungs_rejects_unknown_order():
     table = PK.member_table("epl", _epl_params(3, seed=1), 8)
     with pytest.raises(ValueError, match="order 5"):
         NF.member_rungs(table, "epl", 0.1, 5, 1e-5)
+
+
+def test_population_tables_name_a_missing_parameter():
+    from subslope import render as R
+
+    flat = {"amp": np.ones(2), "gamma": np.full(2, 2.0), "e1": np.zeros(2), "e2": np.zeros(2), "x": np.zeros(2)}
+    with pytest.raises(ValueError, match="'y'"):
+        R._pack("epl", flat, np.array([2]), 8, F64, "cpu")
+    with pytest.raises(ValueError, match="'y'"):
+        R._flat_table("epl", flat, 8, F64, "cpu")

@@ -233,9 +233,14 @@ def _constant_class(table: Tensor, profile: str) -> Tensor:
     for EPL (table row 8 is ``−(γ − 1)/2``), 0 otherwise."""
     if profile != "epl":
         return torch.zeros(table[:, 0].shape, dtype=torch.long, device=table.device)
-    gamma = 1.0 - 2.0 * table[:, 8]
     edges = torch.as_tensor(EPL_GAMMA_EDGES, dtype=table.dtype, device=table.device)
-    return torch.bucketize(gamma.contiguous(), edges)
+    return torch.bucketize(_epl_gamma(table).contiguous(), edges)
+
+
+def _epl_gamma(table: Tensor) -> Tensor:
+    """γ ``(b, N)`` of EPL members from their table (row 8 is ``−(γ − 1)/2``,
+    :func:`subslope.pair_kernels.epl_table`)."""
+    return 1.0 - 2.0 * table[:, 8]
 
 
 def _live(table: Tensor, profile: str) -> Tensor:
@@ -405,9 +410,8 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
     c_edge = _constants(profile, order, True, table.dtype, table.device)[cls]
     if profile == "epl":
         # the EPL is scale-free, |α(λx)| = λ^(2−γ) |α(x)|: one circle, scaled to each radius
-        gamma = 1.0 - 2.0 * table[:, 8]
         one = (peaks or circle_peaks)(table, profile, rho[:1] * h)  # (b, N, 1)
-        amax = one * torch.pow(rho / rho[0], (2.0 - gamma)[..., None])
+        amax = one * torch.pow(rho / rho[0], (2.0 - _epl_gamma(table))[..., None])
     else:
         amax = (peaks or circle_peaks)(table, profile, rho * h)  # (b, N, L)
     if half_width is None:

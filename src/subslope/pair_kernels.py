@@ -96,7 +96,8 @@ def power(r2: Tensor, ex) -> Tensor:
     fraction of ``y = ex·log2 r2``) by the polynomials :data:`_LOG2_COEF` /
     :data:`_EXP2_COEF`, and ``2^round(y)`` written into the exponent bits. Relative
     error ≤ 3e-7 plus the float32 rounding of ``y`` (as for ``exp``/``log``); measured
-    against float64 in ``tests/test_pair_kernels.py``.
+    against float64 in ``tests/test_fast_paths.py``. The EPL pair clamps ``r2`` at
+    ``R_MIN²`` = 1e-18, so ``r2`` is never zero, subnormal or negative.
     """
     if r2.dtype != torch.float32:
         return torch.exp(ex * torch.log(r2))

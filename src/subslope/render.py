@@ -302,14 +302,20 @@ class _Pop:
     counts: np.ndarray
 
 
-def _pack(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms: int, dtype, device) -> _Pop:
-    n_pad = max(1, int(counts.max()) if counts.size else 0)
-    params = {}
+def _profile_values(profile: str, flat: dict[str, np.ndarray]):
+    """``(key, float64 values)`` of every parameter of ``profile``; a clear error for a
+    missing one."""
     for key in _PROFILE_KEYS[profile]:
         if flat.get(key) is None:
             raise ValueError(f"population of profile {profile!r} has no {key!r} values")
-        arr, _ = pack_ragged(np.asarray(flat[key], dtype=np.float64), counts=counts, n_max=n_pad,
-                             fill=_PAD[key])
+        yield key, np.asarray(flat[key], dtype=np.float64)
+
+
+def _pack(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms: int, dtype, device) -> _Pop:
+    n_pad = max(1, int(counts.max()) if counts.size else 0)
+    params = {}
+    for key, vals in _profile_values(profile, flat):
+        arr, _ = pack_ragged(vals, counts=counts, n_max=n_pad, fill=_PAD[key])
         params[key] = torch.as_tensor(arr, dtype=dtype, device=device)
     return _Pop(profile, member_table(profile, params, n_terms), counts)
 
@@ -317,12 +323,8 @@ def _pack(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms
 def _flat_table(profile: str, flat: dict[str, np.ndarray], n_terms: int, dtype, device) -> Tensor:
     """Member table ``(M, n + 1)`` of ``n`` members given as flat arrays, plus one padding
     member (zero amplitude) as the last column."""
-    params = {}
-    for key in _PROFILE_KEYS[profile]:
-        if flat.get(key) is None:
-            raise ValueError(f"population of profile {profile!r} has no {key!r} values")
-        vals = np.append(np.asarray(flat[key], dtype=np.float64), _PAD[key])
-        params[key] = torch.as_tensor(vals, dtype=dtype, device=device)[None, :]
+    params = {key: torch.as_tensor(np.append(vals, _PAD[key]), dtype=dtype, device=device)[None, :]
+              for key, vals in _profile_values(profile, flat)}
     return member_table(profile, params, n_terms)[0]
 
 
