@@ -1,4 +1,4 @@
-"""Error vs seconds per image for every numerical knob of subslope's renderer (issue 7).
+"""Error vs seconds per image for every numerical knob of subslope's renderer.
 
 Scene: the mean training scene (train preset, Sérsic source, N_sub = 1500 on the arc,
 DG19 EPL LoS with δ_los = 1, the mean of its prior), ``--n-img`` images. Each setting
@@ -39,7 +39,8 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
-from subslope import render as R  # noqa: E402
+from subslope.render import kernels  # noqa: E402
+from subslope.render import pipeline as R  # noqa: E402
 
 F64 = torch.float64
 
@@ -90,8 +91,7 @@ def fresh_compile() -> None:
     """Each setting gets its own torch.compile of the population kernels, so that no
     setting is timed with graphs (or a recompile-limit fallback) left by another."""
     torch._dynamo.reset()
-    R._COMPILED.clear()
-    R._COMPILE_FAILED.clear()
+    kernels.clear_cache()
 
 
 def time_it(fn, repeats: int, n: int) -> tuple[float, float]:

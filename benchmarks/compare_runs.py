@@ -10,14 +10,16 @@ It checks, under both ``results/`` folders:
 - every HDF5 file (shards, profiles, HST profiles): the same datasets, bit-identical,
   and the same attributes except those that record the code layout or the config text
   (``--ignore-attr``);
-- JSON files (whitening statistics, thresholds, trend) equal;
+- JSON files (whitening statistics, thresholds, trend) equal, but for the SHA-256 and
+  size of the shard files they name;
 - ``model.pt``: the same tensors (``torch.equal``), the same model card;
 - ``.npz`` arrays bit-identical;
 - CSV files cell by cell (``training_log.csv`` on its loss and lr columns, whose
   timing columns differ from run to run; ``stage_runtime.csv`` is skipped);
 - ``summary.md``: every number outside the run-time table and the config hash.
 
-Figures and Snakemake benchmark files are not compared (they hold times and dates).
+Figures, Snakemake benchmark files and training checkpoints (whose folder name hashes
+the config layout) are not compared.
 Prints one line per compared file and exits 1 when anything differs.
 """
 
@@ -39,6 +41,9 @@ DEFAULT_IGNORED_ATTRS = ("package_version", "config", "config_hash", "render_set
 #: Files whose content is run-time or date dependent.
 SKIPPED_SUFFIXES = (".pdf", ".png", ".tsv", ".log")
 SKIPPED_NAMES = ("stage_runtime.csv",)
+#: Folders not compared: checkpoints sit under a key that hashes the config layout
+#: (``model.pt`` holds the final weights and is compared).
+SKIPPED_DIRS = ("checkpoints", "benchmarks")
 #: training_log.csv columns that are deterministic (the others hold wall times).
 TRAINING_LOG_COLUMNS = ("epoch", "step", "train_loss", "val_loss", "lr")
 
@@ -87,9 +92,23 @@ def _bit_equal(a, b) -> bool:
     return bool(np.all(a == b))
 
 
+#: JSON keys that record the bytes of another file (whose attributes may change).
+FILE_DIGEST_KEYS = ("sha256", "bytes")
+
+
+def _without_digests(obj):
+    if isinstance(obj, dict):
+        return {k: _without_digests(v) for k, v in obj.items() if k not in FILE_DIGEST_KEYS}
+    if isinstance(obj, list):
+        return [_without_digests(v) for v in obj]
+    return obj
+
+
 def compare_json(a: Path, b: Path) -> list[str]:
-    ja = json.loads(a.read_text(encoding="utf-8"))
-    jb = json.loads(b.read_text(encoding="utf-8"))
+    """JSON files equal but for the digests of the files they name (whitening.json
+    records each shard's SHA-256, which changes with a shard's attributes)."""
+    ja = _without_digests(json.loads(a.read_text(encoding="utf-8")))
+    jb = _without_digests(json.loads(b.read_text(encoding="utf-8")))
     return [] if ja == jb else ["JSON content differs"]
 
 
@@ -195,6 +214,8 @@ def compare_trees(base: Path, new: Path, ignored_attrs=DEFAULT_IGNORED_ATTRS) ->
     files_a = {p.relative_to(base) for p in base.rglob("*") if p.is_file()}
     files_b = {p.relative_to(new) for p in new.rglob("*") if p.is_file()}
     failed = 0
+    files_a = {rel for rel in files_a if not set(rel.parts) & set(SKIPPED_DIRS)}
+    files_b = {rel for rel in files_b if not set(rel.parts) & set(SKIPPED_DIRS)}
     for rel in sorted(files_a - files_b):
         if compare_file(base / rel, base / rel, ignored_attrs) is not None:
             print(f"MISSING  {rel}")

@@ -1,7 +1,7 @@
-"""Speed and accuracy of the batched renderer (subslope.render) on the `train` scene.
+"""Speed and accuracy of the batched renderer (subslope.render.pipeline) on the `train` scene.
 
-Renders train-scene images (parameters from subslope.scenes.sample_macro, subhalos from
-subslope.subhalos.sample_subhalos with a fixed N_sub, optional DG19 line-of-sight EPL
+Renders train-scene images (parameters from subslope.simulation.macro.sample_macro, subhalos from
+subslope.simulation.subhalos.sample_subhalos with a fixed N_sub, optional DG19 line-of-sight EPL
 halos) at N_sub in {0, 1500, 3000} x LoS off/on, one CPU thread by default, and prints
 the median wall time per image over `--repeats` repeats, plus the error of the default
 settings against a float64, n_terms = 30 reference render of the same parameters
@@ -21,12 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from subslope import los as los_mod
-from subslope import render as R
-from subslope import scenes
-from subslope import subhalos as S
-from subslope.cosmology import epl_amp_from_m200
-from subslope.instrument import gaussian_psf, load_empirical_psf, noise_sigma_map
+from subslope.simulation import los as los_mod
+from subslope.render import pipeline as R
+from subslope.simulation import scenes
+from subslope.simulation.macro import sample_macro
+from subslope.simulation import subhalos as S
+from subslope.physics.cosmology import epl_amp_from_m200
+from subslope.physics.instrument import gaussian_psf, load_empirical_psf, noise_sigma_map
 
 SHARED = Path(os.environ.get("SUBSLOPE_SHARED", "/work/shared")) / "data"
 
@@ -39,9 +40,9 @@ def psf_kernel() -> torch.Tensor:
 
 
 def cosmos_sources(macro: dict, rng: np.random.Generator) -> R.PixelatedSources | None:
-    """Random galaxies of the local COSMOS sample placed at each z_source (SCIENCE.md §6)."""
-    from subslope.light.pixelated import pad_stamps
-    from subslope.sources.cosmos import CosmosCatalog, place_at_redshift
+    """Random galaxies of the local COSMOS sample placed at each z_source (docs/simulation.md)."""
+    from subslope.physics.light.pixelated import pad_stamps
+    from subslope.io.cosmos import CosmosCatalog, place_at_redshift
 
     cat = CosmosCatalog.load(SHARED / "cosmos")
     t = cat.table
@@ -79,7 +80,7 @@ def make_batch(n_img: int, n_sub: int, with_los: bool, seed: int, source: str = 
     over["components"] = {"los": with_los}
     scene = scenes.Scene.from_config("train", over)
     rng = np.random.default_rng(seed)
-    macro = scenes.sample_macro(scene, n_img, rng)
+    macro = sample_macro(scene, n_img, rng)
     macro["n_sub"][:] = n_sub
     if with_los and delta_los is not None:
         macro["delta_los"][:] = delta_los
@@ -108,7 +109,7 @@ def image_errors(img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
 
 
 def gamma_demo(out_dir: str = "/tmp", seed: int = 3) -> None:
-    """SCIENCE.md §4: N_sub = 1500 EPL subhalos on the arc at γ = 2.5 vs γ = 1.2.
+    """docs/simulation.md: N_sub = 1500 EPL subhalos on the arc at γ = 2.5 vs γ = 1.2.
 
     Same macro draw (Sérsic source, no lens light, no LoS) for both; prints the flux in
     the arc mask (smooth model > 1/5 of its maximum) relative to the smooth model and the
@@ -121,7 +122,7 @@ def gamma_demo(out_dir: str = "/tmp", seed: int = 3) -> None:
     scene = scenes.Scene.from_config("train", {"source": {"kind": "sersic"},
                                                "components": {"los": False, "lens_light": False}})
     rng = np.random.default_rng(seed)
-    macro = scenes.sample_macro(scene, 1, rng)
+    macro = sample_macro(scene, 1, rng)
     macro["n_sub"][:] = 1500
     psf = psf_kernel()
     settings = R.RenderSettings(device="cpu")
@@ -166,7 +167,7 @@ def main() -> None:
     ap.add_argument("--compile", choices=("auto", "on", "off"), default="auto")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gamma-demo", action="store_true",
-                    help="only render the SCIENCE.md §4 γ = 2.5 vs 1.2 comparison (PNG in /tmp)")
+                    help="only render the docs/simulation.md γ = 2.5 vs 1.2 comparison (PNG in /tmp)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     if args.gamma_demo:

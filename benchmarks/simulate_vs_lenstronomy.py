@@ -1,8 +1,8 @@
-"""subslope's renderer against lenstronomy 1.14.2 on the same sampled scenes (issue 7).
+"""subslope's renderer against lenstronomy 1.14.2 on the same sampled scenes.
 
 For each scene (train preset with N_sub in {0, 100, 1500, 3000}, LoS off/on, plus the
 NFW and tNFW CDM scenes with NFW LoS), the same parameters are rendered by
-:func:`subslope.render.render` (default RenderSettings) and by a lenstronomy
+:func:`subslope.render.pipeline.render` (default RenderSettings) and by a lenstronomy
 ``ImageModel`` built by ``benchmarks/_common.py`` (EPL_NUMBA / NFW / TNFW, SHEAR,
 MULTIPOLE m=3,4, CONVERGENCE sheets, ``MultiPlane`` for LoS, SERSIC_ELLIPSE source and
 lens light, PIXEL PSF, supersampling 1). Both timings include the noise draw
@@ -44,9 +44,10 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
-from subslope import nearfar as NF  # noqa: E402
-from subslope import render as R  # noqa: E402
-from subslope.instrument import add_noise  # noqa: E402
+from subslope.render import nearfar as NF  # noqa: E402
+from subslope.render import pipeline as R  # noqa: E402
+from subslope.validation.lenstronomy import LensModelUnrepresentable, lenstronomy_model, lenstronomy_noise  # noqa: E402
+from subslope.physics.instrument import add_noise  # noqa: E402
 
 warnings.filterwarnings("ignore", message="Cosmology is provided")
 
@@ -60,12 +61,13 @@ def compare_scene(kind, n_sub, with_los, args, settings, ref_settings) -> dict:
     row = {"scene": batch.name, "n_img": batch.n,
            "n_sub": n_sub, "los_halos": 0.0 if batch.los is None else float(np.mean(batch.los.counts))}
     try:
-        models = [C.lenstronomy_model(batch, i) for i in range(batch.n)]
-    except C.LensModelUnrepresentable as exc:
+        models = [lenstronomy_model(batch.macro, batch.psf, i, subhalos=batch.subhalos, los=batch.los)
+                  for i in range(batch.n)]
+    except LensModelUnrepresentable as exc:
         row["note"] = str(exc)
         return row
     row["planes"] = float(np.mean([m.n_planes for m in models]))
-    band = C.lenstronomy_noise()
+    band = lenstronomy_noise()
     load0 = C.load()
     ours = batch.render(settings)  # warm-up (torch.compile on first use)
     theirs = np.stack([m.image() for m in models])  # warm-up (numba JIT on first use)
@@ -105,17 +107,17 @@ def fmt_row(r: dict) -> str:
 # ---------------------------------------------------------------------------- breakdown
 def breakdown(args, settings) -> None:
     """Inclusive wall time per render stage of the default settings (timers around the
-    stage functions of subslope.render, monkeypatched; one thread)."""
+    stage functions of subslope.render.pipeline, monkeypatched; one thread)."""
     batch = C.make_scene("train", args.n_img, 1500, True, seed=args.seed, gamma_label=args.gamma,
                          delta_los=args.delta_los)
     acc: dict[str, float] = defaultdict(float)
     calls: dict[str, int] = defaultdict(int)
     state = {"stage": None}
-    orig = {n: getattr(R, n) for n in ("_population_pass", "_main_lens_deflection", "shear_deflection",
+    orig = {n: getattr(R, n) for n in ("population_pass", "main_lens_deflection", "shear_deflection",
                                        "multipole_deflection", "sersic_ellipse_from_magnitude", "convolve",
-                                       "multi_plane_ray_shoot", "pixelated_light", "_stage", "_pack",
-                                       "_flat_table")}
-    orig_nf = {n: getattr(NF, n) for n in ("member_rungs", "_near_pairs", "_near_on_tiles", "_far_on_tiles")}
+                                       "multi_plane_ray_shoot", "pixelated_light", "count_step", "pack_population",
+                                       "flat_table")}
+    orig_nf = {n: getattr(NF, n) for n in ("member_rungs", "near_pairs", "near_on_tiles", "far_on_tiles")}
 
     def timed(name, fn, label=None):
         def w(*a, **k):
@@ -129,22 +131,22 @@ def breakdown(args, settings) -> None:
 
     def stage(name):
         state["stage"] = name
-        orig["_stage"](name)
+        orig["count_step"](name)
 
-    R._stage = stage
-    R._population_pass = timed("pop", orig["_population_pass"],
+    R.count_step = stage
+    R.population_pass = timed("pop", orig["population_pass"],
                                lambda a: f"population pass: {state['stage']} ({a[0].profile})")
     NF.member_rungs = timed("  split: member radii (circle peaks)", orig_nf["member_rungs"])
-    NF._near_pairs = timed("  split: tile lists", orig_nf["_near_pairs"])
-    NF._near_on_tiles = timed("  split: near field on tiles", orig_nf["_near_on_tiles"])
-    NF._far_on_tiles = timed("  split: exact far field in rough tiles", orig_nf["_far_on_tiles"])
-    R._main_lens_deflection = timed("main-lens EPL (n_terms_main)", orig["_main_lens_deflection"])
+    NF.near_pairs = timed("  split: tile lists", orig_nf["near_pairs"])
+    NF.near_on_tiles = timed("  split: near field on tiles", orig_nf["near_on_tiles"])
+    NF.far_on_tiles = timed("  split: exact far field in rough tiles", orig_nf["far_on_tiles"])
+    R.main_lens_deflection = timed("main-lens EPL (n_terms_main)", orig["main_lens_deflection"])
     R.shear_deflection = timed("shear", orig["shear_deflection"])
     R.multipole_deflection = timed("multipoles", orig["multipole_deflection"])
     R.sersic_ellipse_from_magnitude = timed("Sérsic (source + lens light)", orig["sersic_ellipse_from_magnitude"])
     R.convolve = timed("PSF convolution", orig["convolve"])
-    R._pack = timed("member tables (subhalos)", orig["_pack"])
-    R._flat_table = timed("member tables (LoS)", orig["_flat_table"])
+    R.pack_population = timed("member tables (subhalos)", orig["pack_population"])
+    R.flat_table = timed("member tables (LoS)", orig["flat_table"])
     try:
         batch.render(settings)  # warm-up / compile
         acc.clear()

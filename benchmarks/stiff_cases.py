@@ -1,8 +1,8 @@
-"""SCIENCE.md §4 stiff cases: N_sub = 1500 EPL subhalos on the arc at γ = 2.5 and γ = 1.2.
+"""docs/simulation.md stiff cases: N_sub = 1500 EPL subhalos on the arc at γ = 2.5 and γ = 1.2.
 
 Renders one train-scene system (seed 6: Sérsic source; seed 3 also printed; lens light,
 LoS and noise off; empirical F814W PSF; float64) with
-:func:`subslope.diagnostics.stiff_cases`, with and without the negative sheet, prints the
+:func:`subslope.validation.stiff.stiff_cases`, with and without the negative sheet, prints the
 table of docs/simulation.md ("Stiff cases"), cross-checks every image against
 lenstronomy on identical inputs (skipped if lenstronomy is missing) and writes
 results/figures/stiff_cases.png (seed 6).
@@ -17,9 +17,10 @@ import time
 import numpy as np
 import torch
 
-from subslope import diagnostics as D
-from subslope import render as R
-from subslope.plotting import stiff_cases_figure
+from subslope.validation import stiff as D
+from subslope.validation.lenstronomy import lenstronomy_model
+from subslope.render import pipeline as R
+from subslope.figures.data import stiff_cases_figure
 
 try:
     from render_speed import psf_kernel  # run as a script from benchmarks/ or the repo root
@@ -46,7 +47,8 @@ def main() -> None:
         else:
             for c in res["cases"][1:]:
                 m = dict(res["macro"], gamma_sub=np.array([c.gamma]))
-                ref = D.lenstronomy_image(m, res["subhalos"][c.gamma], psf.numpy(), sheet=c.sheet)
+                ref = lenstronomy_model(m, psf.numpy(), 0, subhalos=res["subhalos"][c.gamma], sheets=c.sheet,
+                                        epl="EPL").image()
                 ours = res["images"][c.label]
                 print(f"  {c.label}: relative L2 vs lenstronomy {np.linalg.norm(ours - ref) / np.linalg.norm(ref):.1e}")
         if seed == SEEDS[0]:

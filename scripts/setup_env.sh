@@ -9,7 +9,7 @@
 #   TORCH_INDEX_URL  wheel index for torch (default: pip's configured indexes; on a
 #                    machine without a local torch wheel plain PyPI gives a CUDA build,
 #                    so for CPU-only use https://download.pytorch.org/whl/cpu)
-#   SUBSLOPE_EXTRAS  optional dependency groups to install (default test,reference,slurm)
+#   SUBSLOPE_EXTRAS  optional dependency groups to install (default test,lint,reference,slurm)
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -18,7 +18,7 @@ PYTHON=${PYTHON:-python3}
 VENV=.venv
 TORCH_VERSION=2.13.0
 TORCH_INDEX_URL=${TORCH_INDEX_URL:-}
-EXTRAS=${SUBSLOPE_EXTRAS:-test,reference,slurm}
+EXTRAS=${SUBSLOPE_EXTRAS:-test,lint,reference,slurm}
 PY="$VENV/bin/python"
 
 torch_ok() {

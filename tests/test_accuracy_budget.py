@@ -1,10 +1,10 @@
-"""Accuracy budget of the default render settings on sampled scenes (issue 7; not timed).
+"""Accuracy budget of the default render settings on sampled scenes (not timed).
 
 Budget (docs/performance.md): against a high-accuracy render of the same noise-free
 image, max |Δ| ≤ 0.1 σ_noise (σ from ``instrument.noise_sigma_map`` of the reference)
 and relative L2 ≤ 1e-3. ``tests/test_render.py`` checks the defaults on two synthetic
 EPL populations; here the scenes come from the package's own samplers
-(``scenes.sample_macro``, ``subhalos.sample_subhalos`` on the arc / everywhere,
+(``simulation.macro.sample_macro``, ``subhalos.sample_subhalos`` on the arc / everywhere,
 ``los.sample_los_batch`` + ``los.los_profiles``), cover the NFW/tNFW CDM scenes (eager
 population path) with NFW line-of-sight planes, the stiff γ → 1 end of the training
 prior, and supersampling 2, so a later speed-up of any of these paths cannot silently
@@ -24,7 +24,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import _common as C  # noqa: E402
 
-from subslope import render as R  # noqa: E402
+from subslope.render import pipeline as R  # noqa: E402
+from subslope.validation.lenstronomy import lenstronomy_model  # noqa: E402
 
 MAX_SIGMA, REL_L2 = 0.1, 1e-3
 DEFAULT = R.RenderSettings(device="cpu")
@@ -71,7 +72,7 @@ def test_default_vs_lenstronomy_multiplane(kind, n_sub):
     warnings.filterwarnings("ignore", message="Cosmology is provided")
     batch = C.make_scene(kind, 1, n_sub, True, seed=21, gamma_label=2.0 if kind == "train" else None,
                          delta_los=1.5)
-    model = C.lenstronomy_model(batch, 0)
+    model = lenstronomy_model(batch.macro, batch.psf, 0, subhalos=batch.subhalos, los=batch.los)
     assert model.n_planes > 1
     theirs = torch.as_tensor(model.image())[None]
     max_sigma, rel = C.image_errors(batch.render(DEFAULT), theirs)

@@ -1,4 +1,4 @@
-"""Empirical thresholds, stacks, splits and coverage (subslope.calibration)."""
+"""Empirical thresholds, stacks, splits and coverage (subslope.stats.calibration)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from subslope.calibration import (
+from subslope.stats.calibration import (
     FewSamplesWarning,
     calibration_table,
     coverage,
@@ -21,7 +21,7 @@ from subslope.calibration import (
     wilks_coverage,
     wilks_threshold,
 )
-from subslope.inference import gamma_grid
+from subslope.stats.intervals import gamma_grid
 
 G = gamma_grid()
 

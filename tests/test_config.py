@@ -10,7 +10,7 @@ import yaml
 
 from subslope import config as cfg
 from subslope.cli import main as cli_main
-from subslope.scenes import scenes_from_config
+from subslope.simulation.scenes import scenes_from_config
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config" / "config.yaml"
@@ -59,7 +59,7 @@ def test_shipped_config_is_valid_and_complete():
     assert loaded["instrument"]["psf"]["source"] == "empirical"
     assert loaded["cosmology"]["name"] == "Planck18"
     assert loaded["stages"]["gallery"] is True
-    assert loaded["stages"]["simulation"] is True
+    assert loaded["stages"]["simulate"] is True
     assert loaded["training"]["seed"] is None and loaded["calibration"]["seed"] is None
 
 
@@ -191,7 +191,7 @@ def test_defaults_fill_partial_sections():
         ({"scenes": {"train": {"subhalos": {"profile": "sis"}}}}, "scenes.train.subhalos.profile", "'epl', 'nfw', 'tnfw'"),
         ({"scenes": {"nfw": {"images_per_set": 0}}}, "scenes.nfw.images_per_set", "[1, 1000]"),
         ({"scenes": {"train": {"main_lens": {"theta_ee": 1.0}}}}, "scenes.train.main_lens.theta_ee", "theta_e"),
-        ({"stages": {"simulation": "yes"}}, "stages.simulation", "boolean"),
+        ({"stages": {"simulate": "yes"}}, "stages.simulate", "boolean"),
         ({"training": {"batch_size": 1}}, "training.batch_size", "[2, 100000]"),
         ({"training": {"arch": {"preset": "vgg"}}}, "training.arch.preset", "'reduced', 'resnet50'"),
         ({"training": {"lr": 0.0}}, "training.lr", "(0, 1]"),
@@ -202,7 +202,7 @@ def test_defaults_fill_partial_sections():
         ({"calibration": {"n_images": [0]}}, "calibration.n_images.0", "[1, 1000]"),
         ({"hst": {"lens_centre": {"method": "fit"}}}, "hst.lens_centre.method", "'light_centroid'"),
         ({"cdm": {"band": [16, 184]}}, "cdm.band.1", "[0, 100]"),
-        ({"stages": {"training": 1}}, "stages.training", "boolean"),
+        ({"stages": {"train": 1}}, "stages.train", "boolean"),
     ],
 )
 def test_bad_values_name_the_key_and_what_is_allowed(bad, key, allowed):
@@ -249,3 +249,51 @@ def test_cli_validate_config(tmp_path, capsys):
     bad.write_text("instrument:\n  psf:\n    fwhm: 5\n")
     assert cli_main(["validate-config", str(bad)]) == 1
     assert "instrument.psf.fwhm" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("overlay, key, allowed", [
+    ({"inference": {"gamma_grid": {"low": 2.5, "high": 1.5}}}, "inference.gamma_grid.low/high", "low < high"),
+    ({"calibration": {"single_scene": "nonexistent"}}, "calibration.single_scene", "simulated scenes"),
+    ({"calibration": {"stack_scene": "nowhere"}}, "calibration.stack_scene", "simulated scenes"),
+    ({"calibration": {"n_images": [1, 2, 20]}}, "calibration.n_images", "images_per_set = 13"),
+    ({"cdm": {"nfw_scene": "missing"}}, "cdm.nfw_scene", "no shards of that scene"),
+    ({"simulation": {"multipliers": [0.5, 2.0]}}, "simulation.multipliers", "must include 1.0"),
+    ({"simulation": {"scenes": {"test_epl": {"n_shards": 1, "images_per_shard": 14}}}},
+     "simulation.scenes.test_epl.images_per_shard", "multiple"),
+])
+def test_cross_key_problems_name_the_key(overlay, key, allowed):
+    """The checks that involve several keys live in config.validate, so the CLI and the
+    workflow refuse the same configs with the same message."""
+    raw = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))
+    for section, values in overlay.items():
+        if isinstance(raw.get(section), dict) and section != "simulation":
+            raw[section] = {**raw[section], **values}
+        else:
+            merged = copy.deepcopy(raw.get(section, {}))
+            for k, v in values.items():
+                merged[k] = {**merged.get(k, {}), **v} if isinstance(v, dict) and k == "scenes" else v
+            raw[section] = merged
+    with pytest.raises(cfg.ConfigError) as info:
+        cfg.validate(raw)
+    assert key in str(info.value) and allowed in str(info.value)
+
+
+def test_cross_key_checks_skip_stages_that_do_not_run():
+    raw = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))
+    raw["calibration"] = {**raw["calibration"], "single_scene": "nonexistent"}
+    raw["stages"] = {**raw["stages"], "calibrate": False}
+    assert cfg.validate(raw)["calibration"]["single_scene"] == "nonexistent"
+
+
+def test_cli_validate_config_runs_the_cross_key_checks(tmp_path, capsys):
+    bad = tmp_path / "grid.yaml"
+    bad.write_text("inference:\n  gamma_grid: {low: 2.5, high: 1.5, n: 19}\n")
+    assert cli_main(["validate-config", str(bad)]) == 1
+    assert "inference.gamma_grid" in capsys.readouterr().err
+
+
+def test_active_stages_follow_the_needs():
+    full = cfg.validate({"stages": {"evaluate": False}})
+    on = cfg.active_stages(full)
+    assert not on["evaluate"] and not on["calibrate"] and not on["cdm_grid"] and not on["hst"]
+    assert on["train"] and on["figures"] and on["summary"] and on["gallery"]

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from astropy.cosmology import FlatLambdaCDM
 
-from subslope import concentration as conc
-from subslope import cosmology as cos
+from subslope.physics import concentration as conc
+from subslope.physics import cosmology as cos
 
 ZL, ZS = 0.2, 0.6
 
 
 def test_reference_units_planck18():
-    # SCIENCE.md §4 reference values (3 significant digits)
+    # docs/simulation.md reference values (3 significant digits)
     assert cos.sigma_crit(ZL, ZS) == pytest.approx(4.37e10, rel=2e-3)
     assert cos.rho_crit(ZL) == pytest.approx(6.17e3, rel=2e-3)
     assert cos.arcsec_to_mpc(ZL) == pytest.approx(3.408e-3, rel=3e-4)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from astropy.cosmology import Planck18
 
-from subslope.sources.cosmos import (
+from subslope.io.cosmos import (
     CosmosCatalog, CosmosCuts, CosmosError, normalize_to_magnitude, place_at_redshift,
     split_idents,
 )

@@ -1,4 +1,4 @@
-"""Physics tests of the EPL profile (subslope.profiles.epl) and the ellipse helpers."""
+"""Physics tests of the EPL profile (subslope.physics.profiles.epl) and the ellipse helpers."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import torch
 from lensing_checks import fd_grad, ring_points
 from scipy.special import hyp2f1
 
-from subslope.profiles.ellipse import (ellipse_frame, ellipticity_to_q_phi, from_frame,
+from subslope.physics.profiles.ellipse import (ellipse_frame, ellipticity_to_q_phi, from_frame,
                                        q_phi_to_ellipticity, to_frame)
-from subslope.profiles.epl import (N_TERMS_DEFAULT, amp_to_theta_e, epl_convergence,
+from subslope.physics.profiles.epl import (N_TERMS_DEFAULT, amp_to_theta_e, epl_convergence,
                                    epl_convergence_theta_e, epl_deflection,
                                    epl_deflection_theta_e, epl_potential, theta_e_to_amp)
 
@@ -111,7 +111,7 @@ def test_round_closed_form(gamma, dtype):
 @pytest.mark.parametrize("gamma,kappa1,alpha1", [(1.01, 1.02e-2, 1.03e-2), (1.5, 3.26e-4, 4.34e-4),
                                                   (2.0, 2.13e-4, 4.26e-4), (2.9, 3.41e-5, 6.81e-4)])
 def test_science_reference_values(gamma, kappa1, alpha1, dtype):
-    """SCIENCE.md sec. 4 (M200 = 1e8 Msun, round): kappa(1") listed => alpha(1") listed (3 digits)."""
+    """docs/simulation.md (M200 = 1e8 Msun, round): kappa(1") listed => alpha(1") listed (3 digits)."""
     one = torch.ones(1, dtype=dtype)
     k_unit = epl_convergence(one, 0 * one, 1.0, gamma, 0.0, 0.0)  # kappa(1") per unit amplitude
     amp = kappa1 / k_unit
@@ -171,7 +171,7 @@ def test_default_truncation_error_bound(rng):
 
 
 def test_float32_vs_float64(rng):
-    """float32 vs float64 (docs/_physics_epl.md): on identical (f32-representable) inputs
+    """float32 vs float64 (docs/physics.md (EPL)): on identical (f32-representable) inputs
     <= 2e-6 relative (measured 5.6e-7); end to end, including the rounding of the inputs
     and the cancellation in x - cx near the centre, <= 2e-5 (measured 6.7e-6)."""
     x, y = ring_points(rng, 500, 0.02, 2.5)
@@ -225,7 +225,7 @@ def test_no_nan_on_stiff_grid(gamma, dtype):
 
 
 def test_tiny_amplitude_gamma_near_one():
-    """theta_E ~ 1e-199 arcsec at gamma = 1.01 is carried as amp ~ 1e-2 (SCIENCE.md sec. 4)."""
+    """theta_E ~ 1e-199 arcsec at gamma = 1.01 is carried as amp ~ 1e-2 (docs/simulation.md)."""
     amp = theta_e_to_amp(torch.tensor(1e-199, dtype=F64), 1.01)
     assert 1.0e-2 < amp.item() < 1.1e-2
     assert amp_to_theta_e(amp, 1.01).item() == pytest.approx(1e-199, rel=1e-9)

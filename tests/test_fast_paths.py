@@ -1,13 +1,13 @@
-"""The fast paths of the population passes against their references (issue 7).
+"""The fast paths of the population passes against their references.
 
-* :func:`subslope.pair_kernels.power` (float32 bit arithmetic) against float64 ``**``
+* :func:`subslope.physics.pairs.epl.power` (float32 bit arithmetic) against float64 ``**``
   over the full range the EPL pair uses (``R² ∈ [R_MIN², 10⁴]``, exponent ``−t/2 ∈
   [−1, 0]``), and its float64 path exactly ``exp(ex·log r2)``;
-* :func:`subslope.pair_kernels.direct_sums_few` (members outer) equals
-  :func:`subslope.pair_kernels.direct_sums` (members vectorised), eager and compiled;
-* the main lens as a one-member table equals :func:`subslope.profiles.epl.epl_deflection`;
-* :func:`subslope.nearfar._near_pairs` equals a brute-force box-distance test;
-* the γ classes of the split constants (:func:`subslope.nearfar._constant_class`).
+* :func:`subslope.physics.pairs.sums.direct_sums_few` (members outer) equals
+  :func:`subslope.physics.pairs.sums.direct_sums` (members vectorised), eager and compiled;
+* the main lens as a one-member table equals :func:`subslope.physics.profiles.epl.epl_deflection`;
+* :func:`subslope.render.nearfar.near_pairs` equals a brute-force box-distance test;
+* the γ classes of the split constants (:func:`subslope.render.nearfar.constant_class`).
 """
 
 from __future__ import annotations
@@ -16,9 +16,11 @@ import numpy as np
 import pytest
 import torch
 
-from subslope import nearfar as NF
-from subslope import pair_kernels as PK
-from subslope.profiles.epl import R_MIN, epl_deflection
+from subslope.render import nearfar as NF
+from subslope.render import populations
+from subslope.physics.pairs import epl as pair_epl
+from subslope.physics.pairs import sums as PK
+from subslope.physics.profiles.epl import R_MIN, epl_deflection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
@@ -28,7 +30,7 @@ F64 = torch.float64
 def test_power_float32_matches_float64(ex):
     r2 = torch.logspace(np.log10(R_MIN ** 2), 4, 40001, dtype=F64)
     ref = r2 ** ex
-    got = PK.power(r2.float(), torch.tensor(ex, dtype=torch.float32)).double()
+    got = pair_epl.power(r2.float(), torch.tensor(ex, dtype=torch.float32)).double()
     lib = torch.exp(ex * torch.log(r2.float())).double()
     rel = float(((got - ref) / ref).abs().max())
     rel_lib = float(((lib - ref) / ref).abs().max())
@@ -40,7 +42,7 @@ def test_power_float32_matches_float64(ex):
 def test_power_float64_is_exp_log():
     r2 = torch.logspace(-18, 4, 101, dtype=F64)
     ex = torch.linspace(-1, 0, 101, dtype=F64)
-    assert torch.equal(PK.power(r2, ex), torch.exp(ex * torch.log(r2)))
+    assert torch.equal(pair_epl.power(r2, ex), torch.exp(ex * torch.log(r2)))
 
 
 def _epl_params(n, seed, dtype=F64, b=2):
@@ -73,7 +75,7 @@ def test_main_lens_table_equals_epl_deflection(dtype, tol):
     g = torch.linspace(-2, 2, 41, dtype=dtype)
     x, y = torch.meshgrid(g, g, indexing="xy")
     x, y = x.reshape(1, -1), y.reshape(1, -1)
-    table = PK.epl_table(p, 14)
+    table = pair_epl.epl_table(p, 14)
     ax, ay, _ = PK.direct_sums_few(x, y, table, "epl", False)
     rx, ry = epl_deflection(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"], n_terms=14)
     scale = float(torch.hypot(rx, ry).max())
@@ -88,7 +90,7 @@ def test_near_pairs_match_brute_force():
     u = torch.tensor(rng.uniform(-10, 60, (b, n)), dtype=F64)
     radius = torch.tensor(rng.uniform(0.5, 20, (b, n)), dtype=F64)
     live = torch.tensor(rng.uniform(size=(b, n)) < 0.8)
-    tiles, mem = NF._near_pairs(v, u, radius, live, nt, tile)
+    tiles, mem = NF.near_pairs(v, u, radius, live, nt, tile)
     got = set(zip(tiles.tolist(), mem.tolist()))
     want = set()
     for k in range(b):
@@ -109,13 +111,13 @@ def test_constant_classes_follow_gamma_edges():
     gam = torch.tensor([[1.01, 1.49, 1.5, 1.79, 2.0, 2.21, 2.49, 2.5, 2.99]], dtype=F64)
     p = {"amp": torch.ones_like(gam), "gamma": gam, "e1": torch.zeros_like(gam), "e2": torch.zeros_like(gam),
          "x": torch.zeros_like(gam), "y": torch.zeros_like(gam)}
-    cls = NF._constant_class(PK.member_table("epl", p, 8), "epl")
+    cls = NF.constant_class(PK.member_table("epl", p, 8), "epl")
     want = torch.bucketize(gam, torch.tensor(NF.EPL_GAMMA_EDGES, dtype=F64))
     assert torch.equal(cls, want)
     assert cls.min() == 0 and cls.max() == len(NF.EPL_GAMMA_EDGES)
     nfw = PK.member_table("nfw", {"r_s": torch.ones(1, 3), "alpha_rs": torch.ones(1, 3), "x": torch.zeros(1, 3),
                                   "y": torch.zeros(1, 3)}, 0)
-    assert torch.equal(NF._constant_class(nfw, "nfw"), torch.zeros(1, 3, dtype=torch.long))
+    assert torch.equal(NF.constant_class(nfw, "nfw"), torch.zeros(1, 3, dtype=torch.long))
     for table in (NF.ERROR_CONSTANTS, NF.EDGE_ERROR_CONSTANTS):
         for profile, by_order in table.items():
             for order, rows in by_order.items():
@@ -130,10 +132,8 @@ def test_member_rungs_rejects_unknown_order():
 
 
 def test_population_tables_name_a_missing_parameter():
-    from subslope import render as R
-
     flat = {"amp": np.ones(2), "gamma": np.full(2, 2.0), "e1": np.zeros(2), "e2": np.zeros(2), "x": np.zeros(2)}
     with pytest.raises(ValueError, match="'y'"):
-        R._pack("epl", flat, np.array([2]), 8, F64, "cpu")
+        populations.pack_population("epl", flat, np.array([2]), 8, F64, "cpu")
     with pytest.raises(ValueError, match="'y'"):
-        R._flat_table("epl", flat, 8, F64, "cpu")
+        populations.flat_table("epl", flat, 8, F64, "cpu")

@@ -10,9 +10,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from subslope import figures  # noqa: E402
-from subslope.calibration import calibration_table, expected_coverage, split, wilks_coverage  # noqa: E402
-from subslope.inference import gamma_grid, interval, test_statistic  # noqa: E402
+from subslope.figures import paper as figures  # noqa: E402
+from subslope.stats.calibration import calibration_table, expected_coverage, split, wilks_coverage  # noqa: E402
+from subslope.stats.intervals import gamma_grid, interval, test_statistic  # noqa: E402
+from subslope.figures.save import save_figure  # noqa: E402
 
 G = gamma_grid()
 RUN = "tiny-test"
@@ -23,13 +24,13 @@ def _footer_texts(fig: Figure) -> list[str]:
 
 
 def _check_saved(fig, tmp_path, stem):
-    paths = figures.save(fig, tmp_path / "out" / stem)
+    paths = save_figure(fig, tmp_path / "out" / stem, run_name=RUN)
     assert [p.suffix for p in paths] == [".pdf", ".png"]
     for p in paths:
         assert p.is_file() and p.stat().st_size > 1000
     assert paths[0].read_bytes()[:4] == b"%PDF"
     assert paths[1].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert not [q for q in (tmp_path / "out").iterdir() if q.name.endswith(".part")]  # no temporary left
+    assert not [q for q in (tmp_path / "out").iterdir() if q.name.endswith(".tmp")]  # no temporary left
     assert any(f"run_name={RUN!r}" in t for t in _footer_texts(fig))
     return paths
 

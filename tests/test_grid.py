@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from subslope.grid import axis_coordinates, bin_supersampled, pixel_grid
+from subslope.physics.grid import axis_coordinates, bin_supersampled, pixel_grid
 
 
 def test_grid_centring_and_symmetry(dtype):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.instrument import (
+from subslope.physics.instrument import (
     Instrument,
     add_noise,
     convolve,
@@ -193,8 +193,8 @@ def test_noise_seeded_and_reproducible(dtype):
 
 @pytest.mark.gpu
 def test_cuda_matches_cpu():
-    from subslope.grid import pixel_grid
-    from subslope.light import pixelated_light, sersic_ellipse_from_magnitude
+    from subslope.physics.grid import pixel_grid
+    from subslope.physics.light import pixelated_light, sersic_ellipse_from_magnitude
 
     dev = torch.device("cuda")
     x, y = pixel_grid(100, 0.04, supersample=2, dtype=torch.float64)

@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy.special import gammainc
 
-from subslope.grid import bin_supersampled, pixel_grid
-from subslope.light import (
+from subslope.physics.grid import bin_supersampled, pixel_grid
+from subslope.physics.light import (
     SersicEllipse,
     magnitude_to_flux,
     pad_stamps,
@@ -19,7 +19,7 @@ from subslope.light import (
     sersic_ellipse_from_magnitude,
     sersic_total_flux,
 )
-from subslope.light.sersic import _e1e2_to_q_phi, elliptical_radius_squared
+from subslope.physics.light.sersic import e1e2_to_q_phi, elliptical_radius_squared
 
 
 # ------------------------------------------------------------------------- Sérsic
@@ -38,7 +38,7 @@ def _polar_flux(fn, r_s, n_r=3000, n_t=256):
 @pytest.mark.parametrize("n", [0.5, 1.0, 2.0, 4.0, 8.0])
 def test_sersic_total_flux_matches_magnitude(n):
     mag, r_s, e1, e2 = 18.0, 0.8, 0.25, -0.15  # q ≈ 0.54
-    q, _ = _e1e2_to_q_phi(torch.tensor(e1), torch.tensor(e2))
+    q, _ = e1e2_to_q_phi(torch.tensor(e1), torch.tensor(e2))
     assert float(q) < 0.6
     flux = float(magnitude_to_flux(torch.tensor(mag, dtype=torch.float64)))
     assert flux == pytest.approx(10 ** (-0.4 * (mag - 25.127)), rel=1e-12)
@@ -79,7 +79,7 @@ def test_elliptical_radius_matches_rotated_frame():
     g = torch.Generator().manual_seed(3)
     x, y = torch.randn(2, 500, generator=g, dtype=torch.float64)
     e1, e2 = torch.tensor(0.18, dtype=torch.float64), torch.tensor(-0.11, dtype=torch.float64)
-    q, phi = _e1e2_to_q_phi(e1, e2)
+    q, phi = e1e2_to_q_phi(e1, e2)
     xr = torch.cos(phi) * x + torch.sin(phi) * y
     yr = -torch.sin(phi) * x + torch.cos(phi) * y
     assert torch.allclose(elliptical_radius_squared(x, y, e1, e2), q * xr**2 + yr**2 / q, rtol=1e-12)

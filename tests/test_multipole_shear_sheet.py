@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import math
 
-import numpy as np
 import pytest
 import torch
 from lensing_checks import fd_grad, ring_points
 
-from subslope.profiles.multipole import (multipole_convergence, multipole_deflection,
+from subslope.physics.profiles.multipole import (multipole_convergence, multipole_deflection,
                                          multipole_potential)
-from subslope.profiles.shear import shear_convergence, shear_deflection, shear_potential
-from subslope.profiles.sheet import sheet_convergence, sheet_deflection, sheet_potential
+from subslope.physics.profiles.shear import shear_convergence, shear_deflection, shear_potential
+from subslope.physics.profiles.sheet import sheet_convergence, sheet_deflection, sheet_potential
 
 F64 = torch.float64
 
@@ -41,7 +39,7 @@ def test_multipole_identities(m, a_m, phi_m, cx, cy, rng):
 
 
 def test_multipole_closed_form_kappa():
-    """kappa = a_m cos(m(theta - phi_m)) / (2 r), the lenstronomy convention (SCIENCE.md sec. 3)."""
+    """kappa = a_m cos(m(theta - phi_m)) / (2 r), the lenstronomy convention (docs/simulation.md)."""
     r, th = torch.tensor([0.5, 1.0, 2.0], dtype=F64), torch.tensor([0.2, -1.3, 2.9], dtype=F64)
     for m in (3, 4):
         k = multipole_convergence(r * torch.cos(th), r * torch.sin(th), m, 0.04, 0.7)

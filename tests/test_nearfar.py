@@ -1,6 +1,6 @@
-"""Tests of the near/far population split (subslope.nearfar) against the direct sum.
+"""Tests of the near/far population split (subslope.render.nearfar) against the direct sum.
 
-Float64, eager kernels (``far_sums``, ``near_tile_sums`` of subslope.pair_kernels; no
+Float64, eager kernels (``far_sums``, ``near_tile_sums`` of subslope.physics.pairs.sums; no
 torch.compile). Behaviour is tested through the public functions only (the values of
 ``RHO_LADDER`` / ``ERROR_CONSTANTS`` / ``TILE`` may be retuned):
 
@@ -25,12 +25,13 @@ import numpy as np
 import pytest
 import torch
 
-from subslope import render as R
-from subslope.grid import pixel_grid
-from subslope.instrument import noise_sigma_map
-from subslope.los import LosPopulation
-from subslope.nearfar import GridBlock, interpolation_matrix, node_indices, split_pass
-from subslope.pair_kernels import direct_sums, far_sums, member_table, near_tile_sums
+from subslope.render import pipeline as R
+from subslope.render import counters
+from subslope.physics.grid import pixel_grid
+from subslope.physics.instrument import noise_sigma_map
+from subslope.simulation.los import LosPopulation
+from subslope.render.nearfar import GridBlock, interpolation_matrix, node_indices, split_pass
+from subslope.physics.pairs.sums import direct_sums, far_sums, member_table, near_tile_sums
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_render import PSF, los_of, macro_of, subs_of  # noqa: E402
@@ -327,9 +328,9 @@ def test_strong_distortion_stays_exact(kind):
     evaluated exactly in the rough tiles, so the split still equals the direct sum."""
     x0, y0, x, y = _distortion_case(kind)
     table = table_of(epl_params(30, np.random.default_rng(5), extent=0.7))
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     ax, ay, ks = run_split(table, x, y, [GridBlock(0, 40, PIX)], 0, displaced=True, base=(x0, y0))
-    assert R.STAGE_COUNTS["split_rough_tiles"] > 0
+    assert counters.STEP_COUNTS["split_rough_tiles"] > 0
     dx, dy, dk = direct_sums(x, y, table, "epl")
     scale = float(torch.hypot(dx, dy).max())
     assert float(torch.hypot(ax - dx, ay - dy).max()) <= max(30 * DEF_TOL, 1e-6 * scale)
@@ -342,9 +343,9 @@ def test_mild_distortion_is_interpolated():
     x0, y0 = grid(40, PIX)
     dx, dy = _sin_displacement(x0, y0, amp=0.003)
     table = table_of(epl_params(30, np.random.default_rng(5), extent=0.7))
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     ax, ay, _ = run_split(table, x0 - dx, y0 - dy, [GridBlock(0, 40, PIX)], 0, displaced=True, base=(x0, y0))
-    assert R.STAGE_COUNTS["split_rough_tiles"] == 0
+    assert counters.STEP_COUNTS["split_rough_tiles"] == 0
     ex, ey, _ = direct_sums(x0 - dx, y0 - dy, table, "epl")
     assert float(torch.hypot(ax - ex, ay - ey).max()) <= 30 * DEF_TOL
 
@@ -365,9 +366,9 @@ def test_render_exact_near_massive_foreground_halo():
                         y=np.array([-0.327]), m200=np.array([1e11]), amp=np.array([0.35]),
                         gamma=np.array([2.0]), e1=np.array([0.05]), e2=np.array([-0.03]))
     base = R.RenderSettings(device="cpu", compile="off", dtype=F64, npix=60)
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     split = R.render(m, PSF, dataclasses.replace(base, population="split"), subhalos=subs, los=los)
-    assert R.STAGE_COUNTS["split"] >= 2 and R.STAGE_COUNTS["split_rough_tiles"] >= 1
+    assert counters.STEP_COUNTS["split"] >= 2 and counters.STEP_COUNTS["split_rough_tiles"] >= 1
     direct = R.render(m, PSF, dataclasses.replace(base, population="direct"), subhalos=subs, los=los)
     assert torch.isfinite(split).all() and torch.isfinite(direct).all()
     assert _sigma_error(split, direct) <= 0.05
@@ -412,9 +413,9 @@ def test_render_split_matches_direct(seed, supersample):
     los = los_of([5], seed=seed + 2)
     npix = 100 if supersample == 1 else 50
     base = R.RenderSettings(device="cpu", compile="off", dtype=F64, npix=npix, supersample=supersample)
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     split = R.render(m, PSF, dataclasses.replace(base, population="split"), subhalos=subs, los=los)
-    assert R.STAGE_COUNTS["split"] >= 2 and R.STAGE_COUNTS["multi_plane"] == 1
+    assert counters.STEP_COUNTS["split"] >= 2 and counters.STEP_COUNTS["multi_plane"] == 1
     direct = R.render(m, PSF, dataclasses.replace(base, population="direct"), subhalos=subs, los=los)
     assert torch.isfinite(split).all() and torch.isfinite(direct).all()
     assert _sigma_error(split, direct) <= 0.05

@@ -2,7 +2,7 @@
 
 Measured float32-vs-float64 agreement (x = R/R_s in [1e-6, 1e5], tau in {1e-3 .. 1e4};
 ``OMP_NUM_THREADS=1 .venv/bin/python -m pytest tests/test_nfw.py -q -k float32``) is
-recorded in the bounds of ``test_float32_matches_float64`` and in docs/_physics_nfw.md.
+recorded in the bounds of ``test_float32_matches_float64`` and in docs/physics.md (NFW).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 import torch
 from scipy import integrate
 
-from subslope.profiles import nfw, tnfw
+from subslope.physics.profiles import nfw, tnfw
 
 TAUS = [1e-3, 1e-1, 1.0, 10.0, 1e4]
 G1 = 1.0 + math.log(0.5)
@@ -261,7 +261,7 @@ def test_autograd_is_finite_at_centre_and_x_equal_one(kind):
 
 
 def test_physical_wrapper_matches_conversion():
-    from subslope.cosmology import nfw_params_from_m200_c
+    from subslope.physics.cosmology import nfw_params_from_m200_c
 
     x = torch.zeros(1, 1, 4, dtype=torch.float32)
     m = np.array([[[1e8], [1e9]]])

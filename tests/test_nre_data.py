@@ -15,7 +15,7 @@ from subslope.nre.preprocess import preprocess, read_whitening
 
 
 def write_shard(path, n, seed, *, hw=100, offset=0, complete=True, signal=0.0):
-    """Synthetic shard in the layout of subslope.shards.
+    """Synthetic shard in the layout of subslope.io.shards.
 
     Pixel [0, 0] of image k holds ``offset + k`` so tests can check which row was read;
     with ``signal`` the image mean carries γ (a learnable toy signal).
@@ -99,7 +99,7 @@ def test_read_whitening(tmp_path):
     with pytest.raises(ValueError, match="std > 0"):
         read_whitening((0.0, -1.0))
     p.write_text(json.dumps({"format": "subslope-whitening", "mean": 2.0, "std": 4.0, "n_images": 10}))
-    assert read_whitening(p) == (2.0, 4.0)  # extra keys of subslope.whitening files are ignored
+    assert read_whitening(p) == (2.0, 4.0)  # extra keys of subslope.nre.whitening files are ignored
 
 
 # --- streaming dataset ---------------------------------------------------------------
@@ -199,7 +199,7 @@ def test_unlabelled_shards(tmp_path):
 
 
 def test_reads_shards_written_by_subslope_shards(tmp_path, rng):
-    shards = pytest.importorskip("subslope.shards")
+    shards = pytest.importorskip("subslope.io.shards")
     n = 7
     images = rng.normal(size=(n, 10, 10)).astype(np.float32)
     params = {"theta_e": rng.uniform(0.9, 1.3, n), "lens_x": np.zeros(n), "lens_y": np.zeros(n),

@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from subslope.observations import IMAGE_SHAPE, Observation, ObservationError, load_catalog, load_hst, load_image
+from subslope.io.observations import IMAGE_SHAPE, Observation, ObservationError, load_catalog, load_hst, load_image
 
 HEADER = "file,system,z_lens,z_source,theta_E_arcsec\n"
 

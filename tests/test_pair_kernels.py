@@ -1,12 +1,12 @@
-"""Pair kernels of subslope.pair_kernels against the reference profile functions.
+"""Pair kernels of subslope.physics.pairs.sums against the reference profile functions.
 
-NFW / tNFW (``nfw_pair``, ``tnfw_pair``) against :mod:`subslope.profiles.nfw` and
-:mod:`subslope.profiles.tnfw` over x = R/r_s in [1e-8, 1e4] (centre, x ~ 1 and the
+NFW / tNFW (``nfw_pair``, ``tnfw_pair``) against :mod:`subslope.physics.profiles.nfw` and
+:mod:`subslope.physics.profiles.tnfw` over x = R/r_s in [1e-8, 1e4] (centre, x ~ 1 and the
 branch switches included) and tau = r_t/r_s in [1e-3, 1e3] (the CDM scenes have
 tau ~ 2e-3 ... 60: ``subhalos.nfw_parameters`` with r_sub floored at 1e-3 arcsec), in
 float64 and float32 (float32 inputs rounded first, the reference evaluated in float64 at
 the same rounded points), both broadcast layouts, padded members; EPL (``epl_pair``)
-against :func:`subslope.profiles.epl.epl_deflection_and_convergence`; ``split_weight``
+against :func:`subslope.physics.profiles.epl.epl_deflection_and_convergence`; ``split_weight``
 and the far/near partition. One compiled graph (NFW ``direct_sums``, float32) runs by
 default; the tNFW one (~35 s cold compile) is marked slow.
 """
@@ -19,11 +19,12 @@ import numpy as np
 import pytest
 import torch
 
-from subslope import nfw_pairs
-from subslope import pair_kernels as pk
-from subslope.profiles.epl import epl_deflection_and_convergence
-from subslope.profiles.nfw import nfw_convergence, nfw_deflection
-from subslope.profiles.tnfw import _kappa_asymptotic, _weights, tnfw_convergence, tnfw_deflection
+from subslope.physics.pairs import nfw as nfw_pairs
+from subslope.physics.pairs import epl as pair_epl
+from subslope.physics.pairs import sums as pk
+from subslope.physics.profiles.epl import epl_deflection_and_convergence
+from subslope.physics.profiles.nfw import nfw_convergence, nfw_deflection
+from subslope.physics.profiles.tnfw import kappa_asymptotic, series_weights, tnfw_convergence, tnfw_deflection
 
 TAUS = (1e-3, 0.02, 0.5, 1.0, math.e, 10.0, 1e3)
 R_S, ALPHA_RS, CX, CY = 0.37, 0.011, 0.0, 0.0  # centre at 0: float32 resolves x down to 1e-8
@@ -105,7 +106,7 @@ def test_tnfw_float64_kappa_against_series():
         x = torch.logspace(math.log10(3.5 * m), math.log10(1e4 * m), 200, dtype=torch.float64)
         table = pk.member_table("tnfw", _params("tnfw", tau, torch.float64), 0)
         _, _, k = _pair("tnfw", table, CX + x * R_S, CY + 0 * x, "members_last")
-        shape = _kappa_asymptotic(x * x, torch.full_like(x, tau), _weights(40))
+        shape = kappa_asymptotic(x * x, torch.full_like(x, tau), series_weights(40))
         truth = ALPHA_RS / (2 * (1 + math.log(0.5)) * R_S) * shape
         assert float((k[0] / truth - 1).abs().max()) < 2e-14
 
@@ -143,14 +144,14 @@ def test_compiled_direct_sums_match_eager(profile):
         torch.testing.assert_close(got, want, rtol=2e-5, atol=1e-7)
 
 
-@pytest.mark.parametrize("name", sorted(nfw_pairs._POLY_DEFS))
+@pytest.mark.parametrize("name", sorted(nfw_pairs.POLY_DEFS))
 def test_polynomial_fits(name):
     """Each fitted polynomial reproduces its function over its interval (float64 evaluation)."""
-    fn, (lo, hi), *_ = nfw_pairs._POLY_DEFS[name]
+    fn, (lo, hi), *_ = nfw_pairs.POLY_DEFS[name]
     t = np.linspace(lo, hi, 4001)
     truth = fn(t)
     for double, bound in ((False, 5e-8), (True, 5e-14)):
-        (cn, cd), (hn, hd), coef = nfw_pairs._POLYS[double][name]
+        (cn, cd), (hn, hd), coef = nfw_pairs.POLY_COEFFICIENTS[double][name]
         v = (t - cn / cd) * (hn / hd)
         approx = np.polynomial.polynomial.polyval(v, [n / d_ for n, d_ in coef])
         assert np.max(np.abs(approx / truth - 1)) < bound
@@ -160,7 +161,7 @@ def test_log_matches_torch():
     for dtype, bound in ((torch.float32, 2e-7), (torch.float64, 4e-16)):
         z = torch.cat([torch.logspace(-24, 30, 20001, dtype=torch.float64),
                        torch.linspace(0.5, 2.0, 2001, dtype=torch.float64)]).to(dtype)
-        got = nfw_pairs._log(z, torch.ones((), dtype=dtype)).double()
+        got = nfw_pairs.fast_log(z, torch.ones((), dtype=dtype)).double()
         want = torch.log(z.double())
         assert float(((got - want).abs() / want.abs().clamp(min=1.0)).max()) < bound
 
@@ -178,7 +179,7 @@ def test_epl_pair_against_reference(n_terms):
     table = pk.member_table("epl", params, n_terms)
     x, y = 3 * u(1, q) - 1.5, 3 * u(1, q) - 1.5
     rows = [table[:, k, None, :] for k in range(table.shape[1])]
-    got = pk.epl_pair(x[:, :, None], y[:, :, None], rows)
+    got = pair_epl.epl_pair(x[:, :, None], y[:, :, None], rows)
     p = {k: v[:, None, :] for k, v in params.items()}
     want = epl_deflection_and_convergence(x[:, :, None], y[:, :, None], p["amp"], p["gamma"], p["e1"], p["e2"],
                                           p["x"], p["y"], n_terms=n_terms)

@@ -1,4 +1,4 @@
-"""Tests of subslope.priors: each family against its distribution, errors, seeding."""
+"""Tests of subslope.simulation.priors: each family against its distribution, errors, seeding."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from subslope.priors import DISTRIBUTIONS, Fixed, Normal, PowerLaw, Prior, PriorError, Uniform, UniformInt
+from subslope.simulation.priors import DISTRIBUTIONS, Fixed, Normal, PowerLaw, Prior, PriorError, Uniform, UniformInt
 
 N = 20_000
 

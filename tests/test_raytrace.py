@@ -1,4 +1,4 @@
-"""Tests of subslope.raytrace: single- and multi-plane lens equation."""
+"""Tests of subslope.physics.raytrace: single- and multi-plane lens equation."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 from astropy.cosmology import FlatLambdaCDM, LambdaCDM, Planck18
 
-from subslope.population import pack_ragged_params, population_deflection
-from subslope.raytrace import Plane, comoving_distance, multi_plane_ray_shoot, plane_geometry, ray_shoot
+from subslope.ragged import pack_ragged
+from subslope.physics.raytrace import Plane, comoving_distance, multi_plane_ray_shoot, plane_geometry, ray_shoot
 
 
 # --- small analytic deflectors (test-local) ---------------------------------------
@@ -24,6 +24,18 @@ def point_mass(x, y, theta_e, cx=0.0, cy=0.0):
     dx, dy = x - cx, y - cy
     r2 = (dx * dx + dy * dy).clamp_min(1e-24)
     return theta_e**2 * dx / r2, theta_e**2 * dy / r2
+
+
+def point_masses(x, y, *, theta_e, cx, cy):
+    """Summed deflection of a padded population of point masses, parameters (B, N);
+    padded slots have theta_e = 0 and so deflect nothing."""
+    ax, ay = point_mass(x[:, None, :], y[:, None, :], theta_e[..., None], cx[..., None], cy[..., None])
+    return ax.sum(dim=1), ay.sum(dim=1)
+
+
+def packed(values, counts, dtype=torch.float64):
+    """Flat per-member arrays -> padded (B, N) tensors (zeros in the padding)."""
+    return {k: torch.as_tensor(pack_ragged(v, counts=counts)[0], dtype=dtype) for k, v in values.items()}
 
 
 def sheet(x, y, kappa):
@@ -131,10 +143,10 @@ def test_per_system_redshifts_and_front_behind_copies():
 def test_population_plane_in_multi_plane(rng):
     counts = np.array([4, 7])
     m = counts.sum()
-    params, mask = pack_ragged_params({"theta_e": rng.uniform(0.01, 0.05, m), "cx": rng.uniform(-2, 2, m),
-                                       "cy": rng.uniform(-2, 2, m)}, counts=counts)
+    params = packed({"theta_e": rng.uniform(0.01, 0.05, m), "cx": rng.uniform(-2, 2, m),
+                     "cy": rng.uniform(-2, 2, m)}, counts)
     x, y = grid(n=8, batch=2)
-    pop = functools.partial(population_deflection, point_mass, params=params, mask=mask, chunk_size=3)
+    pop = functools.partial(point_masses, **params)
     out = multi_plane_ray_shoot(x, y, [Plane(0.1, [pop]), Plane(0.2, [functools.partial(sis, theta_e=1.0)])], 0.6)
     assert torch.isfinite(out[0]).all() and out[0].shape == (2, 64)
 
@@ -226,7 +238,7 @@ def test_cuda_matches_cpu():
 @pytest.mark.slow
 @pytest.mark.reference
 def test_report_numbers(rng):
-    """Prints the numbers quoted in docs/_physics_raytrace.md (run with -m slow -s)."""
+    """Prints the numbers quoted in docs/physics.md (ray tracing) (run with -m slow -s)."""
     import time
 
     from lenstronomy.LensModel.lens_model import LensModel
@@ -253,9 +265,9 @@ def test_report_numbers(rng):
         xx, yy = grid(n=100, dtype=dt, batch=b)
 
         def pop(n):
-            p, m = pack_ragged_params({"theta_e": g.uniform(1e-3, 2e-2, b * n), "cx": g.uniform(-2, 2, b * n),
-                                       "cy": g.uniform(-2, 2, b * n)}, counts=np.full(b, n), dtype=dt)
-            return functools.partial(population_deflection, point_mass, params=p, mask=m)
+            p = packed({"theta_e": g.uniform(1e-3, 2e-2, b * n), "cx": g.uniform(-2, 2, b * n),
+                        "cy": g.uniform(-2, 2, b * n)}, np.full(b, n), dtype=dt)
+            return functools.partial(point_masses, **p)
 
         pls = [Plane(zl, [functools.partial(sis, theta_e=torch.tensor(1.1, dtype=dt)), pop(n_sub)])]
         pls += [Plane(z, [pop(n_los)]) for z in np.arange(n_slice) * 0.01 + 0.015 if z < zs]

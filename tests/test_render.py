@@ -1,4 +1,4 @@
-"""Tests of the batched renderer (subslope.render, subslope.pair_kernels, subslope.nearfar)."""
+"""Tests of the batched renderer (subslope.render.pipeline, subslope.physics.pairs.sums, subslope.render.nearfar)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from subslope import render as R
-from subslope.grid import pixel_grid
-from subslope.instrument import gaussian_psf, noise_sigma_map
-from subslope.light.pixelated import pad_stamps
-from subslope.light.sersic import sersic_amp_from_flux, magnitude_to_flux
-from subslope.los import LosPopulation
-from subslope.profiles.epl import epl_convergence, epl_deflection
-from subslope.subhalos import SubhaloPopulation
+from subslope.render import pipeline as R
+from subslope.render import counters, populations, kernels
+from subslope.physics.grid import pixel_grid
+from subslope.physics.instrument import gaussian_psf, noise_sigma_map
+from subslope.physics.light.pixelated import pad_stamps
+from subslope.physics.light.sersic import sersic_amp_from_flux, magnitude_to_flux
+from subslope.simulation.los import LosPopulation
+from subslope.physics.profiles.epl import epl_convergence, epl_deflection
+from subslope.simulation.subhalos import SubhaloPopulation
 
 PSF = torch.as_tensor(gaussian_psf(0.1, 0.04))
 FAST = R.RenderSettings(compile="off", chunk_members=64, device="cpu")
@@ -128,13 +129,15 @@ def _boom(name):
 
 def test_left_out_stages_are_not_evaluated(monkeypatch):
     m = macro_of(2, multipoles=False, shear=False, lens_light=False, sersic_source=False)
-    for name in ("multi_plane_ray_shoot", "sersic_ellipse_from_magnitude", "_population_pass",
-                 "shear_deflection", "multipole_deflection", "split_pass", "member_table"):
+    for name in ("multi_plane_ray_shoot", "sersic_ellipse_from_magnitude", "population_pass",
+                 "shear_deflection", "multipole_deflection"):
         monkeypatch.setattr(R, name, _boom(name))
-    R.reset_stage_counts()
+    for name in ("split_pass", "member_table"):
+        monkeypatch.setattr(populations, name, _boom(name))
+    counters.reset_step_counts()
     img = R.render(m, PSF, FAST, sources=cosmos_like(2), subhalos=subs_of([0, 0]), los=los_of([0, 0]))
     assert torch.isfinite(img).all()
-    c = R.STAGE_COUNTS
+    c = counters.STEP_COUNTS
     assert c["single_plane"] == 2 and c["main_lens"] == 2 and c["source_pixelated"] == 2
     for stage in ("multi_plane", "los", "subhalos", "split", "shear", "multipoles", "lens_light",
                   "source_sersic", "supersample_bin"):
@@ -142,9 +145,9 @@ def test_left_out_stages_are_not_evaluated(monkeypatch):
 
 
 def test_stage_counts_when_on():
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     R.render(macro_of(2), PSF, FAST, subhalos=subs_of([3, 0]), los=los_of([2, 0]))
-    c = R.STAGE_COUNTS
+    c = counters.STEP_COUNTS
     # system 0: LoS -> multi-plane; system 1: nothing -> single plane, no population pass
     assert c["multi_plane"] == 1 and c["single_plane"] == 1
     assert c["subhalos"] == 1 and c["los"] >= 1
@@ -178,13 +181,12 @@ def test_batch_invariance_bit_identical(threads):
         assert torch.equal(R.render(mi, PSF, s, subhalos=si, los=li)[0], full[i]), i
 
 
-def test_sub_batched_path_matches(monkeypatch):
+def test_sub_batched_path_matches():
     """The sub-batched (accelerator) path: padded slots, inactive planes and the plane
     union are exact no-ops mathematically. On CPU, SIMD main loops vs scalar tails of
     transcendental ops on the (b, w) parameter tensors change the last bit, so only
     float rounding is asserted here; bit identity is asserted on CUDA (test below)."""
-    monkeypatch.setattr(R, "_PER_IMAGE_ON_CPU", False)
-    s = dataclasses.replace(FAST, chunk_members=16)
+    s = dataclasses.replace(FAST, chunk_members=16, batching="sub_batch")
     m, subs, los = _batch_case()
     full = R.render(m, PSF, s, subhalos=subs, los=los)
     for i in range(3):
@@ -193,20 +195,19 @@ def test_sub_batched_path_matches(monkeypatch):
         assert float((alone - full[i]).abs().max()) <= 1e-5 * float(full[i].abs().max()), i
 
 
-def test_sub_batched_split_matches(monkeypatch):
+def test_sub_batched_split_matches():
     """The sub-batched (accelerator) path with the near/far split (populations of 140 and
     90 members, one system without subhalos, LoS planes): each image equals its
     per-image render to float64 rounding."""
-    s = R.RenderSettings(device="cpu", compile="off", dtype=torch.float64)
+    s = R.RenderSettings(device="cpu", compile="off", dtype=torch.float64, batching="sub_batch")
     m, subs, los = macro_of(3, seed=5), subs_of([140, 0, 90], seed=6), los_of([3, 5, 0], seed=7)
-    monkeypatch.setattr(R, "_PER_IMAGE_ON_CPU", False)
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     full = R.render(m, PSF, s, subhalos=subs, los=los)
-    assert R.STAGE_COUNTS["split"] == 1
-    monkeypatch.setattr(R, "_PER_IMAGE_ON_CPU", True)
+    assert counters.STEP_COUNTS["split"] == 1
+    per_image = dataclasses.replace(s, batching="per_image")
     for i in range(3):
         mi, si, li = _split(m, subs, los, i)
-        alone = R.render(mi, PSF, s, subhalos=si, los=li)[0]
+        alone = R.render(mi, PSF, per_image, subhalos=si, los=li)[0]
         assert float((alone - full[i]).abs().max()) <= 1e-12 * float(full[i].abs().max()), i
 
 
@@ -236,10 +237,10 @@ def test_kernel_and_negative_sheet():
     x, y = pixel_grid(100, 0.04, dtype=torch.float64)
     x, y = x.reshape(1, -1), y.reshape(1, -1)
     subs = subs_of([37], seed=9, gamma=(1.05, 2.95))
-    pop = R._pack("epl", {k: getattr(subs, k) for k in ("amp", "gamma", "e1", "e2", "x", "y")},
+    pop = populations.pack_population("epl", {k: getattr(subs, k) for k in ("amp", "gamma", "e1", "e2", "x", "y")},
                   subs.counts, 20, torch.float64, "cpu")
     s64 = dataclasses.replace(FAST, dtype=torch.float64, n_terms=20)
-    ax, ay, k_sheet = R._population_pass(pop, x, y, s64, R._kernels(s64, torch.device("cpu")), 100 * 100)
+    ax, ay, k_sheet = populations.population_pass(pop, x, y, s64, kernels.kernels_for(s64, torch.device("cpu")), 100 * 100)
     p = {k: torch.as_tensor(getattr(subs, k))[:, None] for k in ("amp", "gamma", "e1", "e2", "x", "y")}
     kap = epl_convergence(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"]).sum(0)
     assert abs(float(kap.mean() + k_sheet[0, 0])) < 1e-12 * float(kap.abs().mean())
@@ -254,9 +255,9 @@ def test_multiplane_with_massless_los_equals_single_plane():
     s = dataclasses.replace(FAST, dtype=torch.float64)
     m = macro_of(2, seed=10)
     subs = subs_of([30, 12], seed=11)
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     a = R.render(m, PSF, s, subhalos=subs, los=los_of([6, 4], zero=True))
-    assert R.STAGE_COUNTS["multi_plane"] == 2
+    assert counters.STEP_COUNTS["multi_plane"] == 2
     b = R.render(m, PSF, s, subhalos=subs)
     assert float((a - b).abs().max()) < 1e-11 * float(b.abs().max())
 
@@ -348,7 +349,8 @@ def test_against_lenstronomy():
 
 # ------------------------------------------------------------------ multi-Sérsic source
 def multi_macro(b=3, seed=0, ncomp=None, kind_over=None):
-    from subslope.scenes import Scene, sample_macro
+    from subslope.simulation.macro import sample_macro
+    from subslope.simulation.scenes import Scene
 
     over = {"source": {"kind": "multi_sersic", "r_sersic": {"dist": "uniform", "low": 0.1, "high": 0.2},
                        "n_sersic": {"dist": "uniform", "low": 0.8, "high": 1.5}},
@@ -372,7 +374,7 @@ def test_multi_sersic_unlensed_flux_equals_total_magnitude():
 
 
 def test_multi_sersic_components_off_are_not_evaluated(monkeypatch):
-    import subslope.light.sersic as LS
+    import subslope.physics.light.sersic as LS
 
     calls = []
     orig = LS.sersic_ellipse_from_magnitude
@@ -387,11 +389,11 @@ def test_multi_sersic_components_off_are_not_evaluated(monkeypatch):
     for j in range(4):  # the sampled fractions follow the count; rewrite them to match
         m[f"src_frac_{j}"][:] = [[1, 0.5, 0.6][i] * (j < m["src_ncomp"][i]) if j else [1, 0.5, 0.6][i]
                                  for i in range(3)]
-    R.reset_stage_counts()
+    counters.reset_step_counts()
     R.render(m, PSF, FAST)  # CPU: one image at a time
-    assert R.STAGE_COUNTS["source_multi_sersic"] == 3
-    assert R.STAGE_COUNTS["source_component"] == 1 + 3 + 2 == len(calls)
-    assert R.STAGE_COUNTS["source_sersic"] == 0
+    assert counters.STEP_COUNTS["source_multi_sersic"] == 3
+    assert counters.STEP_COUNTS["source_component"] == 1 + 3 + 2 == len(calls)
+    assert counters.STEP_COUNTS["source_sersic"] == 0
 
 
 def test_multi_sersic_one_component_equals_sersic_and_batch_invariance():

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from subslope import resources as res
+from subslope.io import resources as res
 from subslope.cli import main as cli_main
 
 

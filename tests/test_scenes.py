@@ -1,4 +1,4 @@
-"""Tests of subslope.scenes: paper defaults, config errors, macro sampling."""
+"""Tests of subslope.simulation.scenes: paper defaults, config errors, macro sampling."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import pytest
 import yaml
 from scipy import stats
 
-from subslope.priors import Normal, PriorError, Uniform, UniformInt
-from subslope.scenes import PRESETS, Scene, SceneError, sample_macro, scenes_from_config  # noqa: F401
+from subslope.simulation.priors import Normal, PriorError, Uniform, UniformInt
+from subslope.simulation.macro import sample_macro
+from subslope.simulation.scenes import PRESETS, Scene, SceneError, scenes_from_config  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAGMENT = ROOT / "config" / "config.yaml"
@@ -222,7 +223,7 @@ MULTI = {"source": {"kind": "multi_sersic"}}
 
 
 def test_multi_sersic_layout_and_priors(rng):
-    from subslope.scenes import MULTI_SERSIC_KEYS, multi_sersic_keys
+    from subslope.simulation.scenes import MULTI_SERSIC_KEYS, multi_sersic_keys
 
     s = Scene.from_config("train", MULTI)
     assert s.source.multi_sersic.max_components == 4

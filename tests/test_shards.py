@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from subslope import shards
+from subslope.io import shards
 
 
 def _write(path, seed=0, n=4, **kw):

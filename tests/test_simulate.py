@@ -9,11 +9,15 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from subslope import concentration, cosmology
+from subslope.physics import concentration
+from subslope.physics import cosmology
 from subslope import config as cfgmod
-from subslope import los as losmod
-from subslope import shards, simulate
-from subslope.scenes import Scene, sample_macro
+from subslope.simulation import los as losmod
+from subslope.io import shards
+from subslope.simulation import shard as simulate
+from subslope.stages import plan
+from subslope.simulation.macro import sample_macro
+from subslope.simulation.scenes import Scene
 from tests.conftest import REPO_ROOT
 
 
@@ -108,16 +112,16 @@ def test_cdm_shards(config, scene, tmp_path):
 
 def test_shard_jobs_and_paths(config):
     full = cfgmod.validate({})
-    jobs = simulate.shard_jobs(full)
+    jobs = plan.shard_jobs(full)
     per_scene = {}
     for j in jobs:
         per_scene[j["scene"]] = per_scene.get(j["scene"], 0) + 1
     assert per_scene == {"train": 2, "validation": 1, "test_epl": 1, "nfw": 2, "tnfw": 2}
-    assert simulate.shard_path("nfw", 3, 0.5) == "results/simulate_shard/nfw/a0.5/shard_3.h5"
-    assert simulate.shard_path("train", 1) == "results/simulate_shard/train/shard_1.h5"
-    bad = cfgmod.validate({"simulation": {"scenes": {"test_epl": {"n_shards": 1, "images_per_shard": 10}}}})
+    assert plan.shard_path("nfw", 3, 0.5) == "results/simulate_shard/nfw/a0.5/shard_3.h5"
+    assert plan.shard_path("train", 1) == "results/simulate_shard/train/shard_1.h5"
+    bad = {"simulation": {"scenes": {"test_epl": {"n_shards": 1, "images_per_shard": 10}}}}
     with pytest.raises(cfgmod.ConfigError, match="simulation.scenes.test_epl.images_per_shard"):
-        simulate.shard_jobs(bad)
+        plan.shard_jobs(bad)
 
 
 def test_seed_streams_are_distinct():

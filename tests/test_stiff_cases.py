@@ -1,4 +1,4 @@
-"""Stiff cases of SCIENCE.md §4 (subslope.diagnostics): fast checks and a lenstronomy cross-check."""
+"""Stiff cases of docs/simulation.md (subslope.validation.stiff): fast checks and a lenstronomy cross-check."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from subslope import diagnostics as D
-from subslope import render as R
-from subslope.instrument import gaussian_psf
+from subslope.validation import stiff as D
+from subslope.validation.lenstronomy import lenstronomy_model
+from subslope.render import pipeline as R
+from subslope.render import populations
+from subslope.physics.instrument import gaussian_psf
 
 PSF = gaussian_psf(0.1, 0.04)
 COARSE = R.RenderSettings(npix=40, pixel_scale=0.1, device="cpu", dtype=torch.float64, compile="off",
@@ -22,14 +24,14 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 def _record_sheets(monkeypatch):
     seen = []
-    orig = R._population_pass
+    orig = R.population_pass
 
     def rec(*args, **kwargs):
         out = orig(*args, **kwargs)
         seen.append(float(out[2][0, 0]))
         return out
 
-    monkeypatch.setattr(R, "_population_pass", rec)
+    monkeypatch.setattr(R, "population_pass", rec)
     return seen
 
 
@@ -66,7 +68,7 @@ def test_sheet_off_is_a_local_diagnostic():
     res = D.stiff_cases(PSF, seed=3, n_sub=20, gammas=(1.2,), settings=dataclasses.replace(COARSE, pixel_scale=0.1))
     on, off = (res["images"][c.label] for c in res["cases"][1:])
     assert not np.allclose(on, off)
-    assert R._population_pass.__name__ == "_population_pass"  # restored
+    assert R.population_pass is populations.population_pass  # restored
 
 
 @pytest.mark.reference
@@ -76,7 +78,7 @@ def test_gamma_1p2_against_lenstronomy():
     res = D.stiff_cases(PSF, seed=6, n_sub=50, gammas=(1.2,), sheets=(True, False), settings=s)
     for c in res["cases"][1:]:
         m = dict(res["macro"], gamma_sub=np.array([1.2]))
-        ref = D.lenstronomy_image(m, res["subhalos"][1.2], PSF, sheet=c.sheet)
+        ref = lenstronomy_model(m, PSF, 0, subhalos=res["subhalos"][1.2], sheets=c.sheet, epl="EPL").image()
         rel = np.linalg.norm(res["images"][c.label] - ref) / np.linalg.norm(ref)
         print(f"{c.label}: relative L2 vs lenstronomy {rel:.1e}")
         assert rel <= 1e-3

@@ -1,4 +1,4 @@
-"""Tests of subslope.subhalos: mass function, slopes, placement, lens-parameter conversion."""
+"""Tests of subslope.simulation.subhalos: mass function, slopes, placement, lens-parameter conversion."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy import optimize, stats
 
-from subslope import subhalos as sh
-from subslope.scenes import Scene, sample_macro, scenes_from_config
+from subslope.simulation import subhalos as sh
+from subslope.simulation.macro import sample_macro
+from subslope.simulation.scenes import Scene, scenes_from_config
 
 NPIX, DELTA = 100, 0.04
 
@@ -122,7 +123,7 @@ def test_place_everywhere_uniform(rng):
     assert stats.pearsonr(x, y)[1] > 1e-3
 
 
-# SCIENCE.md §4: for M200 = 1e8 M_sun at z_l = 0.2, z_s = 0.6, a round EPL has
+# docs/simulation.md: for M200 = 1e8 M_sun at z_l = 0.2, z_s = 0.6, a round EPL has
 # α(1") = θ_E^(γ-1) (the amplitude).
 REFERENCE_AMP = [(1.01, 1.03e-2), (1.5, 4.34e-4), (2.0, 4.26e-4), (2.9, 6.81e-4)]
 
@@ -139,7 +140,7 @@ def test_epl_amplitude_matches_reference_values():
 
 
 def test_epl_amplitude_uses_each_systems_redshifts():
-    from subslope.cosmology import epl_amp_from_m200
+    from subslope.physics.cosmology import epl_amp_from_m200
 
     counts = np.array([2, 3])
     mass = np.array([1e7, 1e9, 1e8, 3e8, 1e10])
@@ -151,8 +152,8 @@ def test_epl_amplitude_uses_each_systems_redshifts():
 
 
 def test_nfw_parameters_follow_concentration_relation(rng):
-    from subslope.concentration import dutton_maccio_c200, truncation_radius_arcsec
-    from subslope.cosmology import nfw_params_from_m200_c
+    from subslope.physics.concentration import dutton_maccio_c200, truncation_radius_arcsec
+    from subslope.physics.cosmology import nfw_params_from_m200_c
 
     counts = np.array([3, 0, 2])
     mass = np.array([1e7, 1e8, 1e9, 1e8, 1e10])

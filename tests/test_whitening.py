@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from subslope import shards, whitening
+from subslope.io import shards
+from subslope.nre import whitening
 
 
 def _shard(path, images):

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from subslope.plotting import log_stretch_limits
+from subslope.figures.data import log_stretch_limits
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")
@@ -92,13 +92,13 @@ def test_bad_config_stops_before_any_job(workdir, data_dir):
     assert not (workdir / "resources").exists() and not (workdir / "results").exists()
 
 
-STAGES = ("gallery", "simulation", "training", "inference", "calibration", "cdm_grid", "hst", "figures")
+STAGES = ("gallery", "simulate", "train", "evaluate", "calibrate", "cdm_grid", "hst", "figures", "summary")
 
 
-def _stages(workdir: Path, gallery: bool, simulation: bool, **more: bool) -> str:
-    """A config file switching stages (later stages default to `simulation`'s value)."""
-    flags = {"gallery": gallery, "simulation": simulation}
-    flags.update({s: more.get(s, simulation) for s in STAGES[2:]})
+def _stages(workdir: Path, gallery: bool, simulate: bool, **more: bool) -> str:
+    """A config file switching stages (later stages default to `simulate`'s value)."""
+    flags = {"gallery": gallery, "simulate": simulate}
+    flags.update({s: more.get(s, simulate) for s in STAGES[2:]})
     name = "stages_" + "".join(str(int(flags[s])) for s in STAGES)
     path = workdir / "config" / f"{name}.yaml"
     path.write_text("stages:\n" + "".join(f"  {k}: {str(v).lower()}\n" for k, v in flags.items()))
@@ -149,8 +149,8 @@ def _job_stats(output: str) -> dict[str, int]:
 
 
 def _sim_only(workdir: Path) -> str:
-    return _stages(workdir, False, True, training=False, inference=False, calibration=False, cdm_grid=False,
-                   hst=False, figures=False)
+    return _stages(workdir, False, True, train=False, evaluate=False, calibrate=False, cdm_grid=False,
+                   hst=False, figures=False, summary=False)
 
 
 def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
@@ -172,14 +172,15 @@ def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
         assert f"results/simulate_shard/{path}" in proc.stdout, path
 
 
-#: Rules of each stage after simulation.
+#: Rules of each stage after simulate.
 STAGE_RULES = {
-    "training": {"train_estimator"},
-    "inference": {"evaluate_profiles", "evaluate_cdm_profiles"},
-    "calibration": {"calibrate_threshold", "summarize_coverage"},
+    "train": {"train_estimator"},
+    "evaluate": {"evaluate_profiles", "evaluate_cdm_profiles"},
+    "calibrate": {"calibrate_threshold", "summarize_coverage"},
     "cdm_grid": {"measure_cdm_grid"},
     "hst": {"analyze_hst"},
-    "figures": {"plot_training_curves", "plot_validation", "write_summary"},
+    "figures": {"plot_training_curves", "plot_validation"},
+    "summary": {"write_summary"},
 }
 
 
@@ -196,11 +197,11 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
     assert {k: v for k, v in stats.items() if k not in ("fetch_data", "plot_hst_gallery")} == expected, stats
 
 
-@pytest.mark.parametrize("off", ["training", "calibration", "cdm_grid"])
+@pytest.mark.parametrize("off", ["train", "calibrate", "cdm_grid"])
 def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
     """A stage switched off runs none of its rules, nor do the stages that need it."""
-    needs = {"training": {"inference", "calibration", "cdm_grid", "hst", "figures"},
-             "inference": {"calibration", "cdm_grid", "hst"}, "calibration": {"hst"}}
+    needs = {"train": {"evaluate", "calibrate", "cdm_grid", "hst", "figures", "summary"},
+             "evaluate": {"calibrate", "cdm_grid", "hst"}, "calibrate": {"hst"}}
     flags = workdir / "config" / f"tiny_no_{off}.yaml"
     flags.write_text(f"stages:\n  {off}: false\n")
     proc = snakemake(workdir, "-n", "--configfile", "config/tiny.yaml", str(flags), mirror=data_dir)
@@ -210,11 +211,11 @@ def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
     for stage, rules in STAGE_RULES.items():
         if stage in dead:
             assert not rules & set(stats), (stage, stats)
-        elif stage != "figures" or "calibration" not in dead:
+        elif stage != "figures" or "calibrate" not in dead:
             assert rules & set(stats), (stage, stats)
     if off == "cdm_grid":
         assert stats["analyze_hst"] == 1 and "measure_cdm_grid" not in stats
-    if off == "calibration":  # figures still plot the training curves and write the summary
+    if off == "calibrate":  # figures still plot the training curves and write the summary
         assert stats["write_summary"] == 1 and "plot_validation" not in stats
 
 
@@ -241,7 +242,8 @@ def tiny_run(workdir):
 
 @pytest.mark.slow
 def test_real_run_tiny_simulation(tiny_run, workdir):
-    from subslope import shards, simulate
+    from subslope.io import shards
+    from subslope.simulation import shard as simulate
 
     results = tiny_run
     paths = sorted((results / "simulate_shard").rglob("*.h5"))
@@ -269,7 +271,7 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
     import h5py
     import pandas as pd
 
-    from subslope.campaign import SUMMARY_SECTIONS
+    from subslope.stages.summary import SUMMARY_SECTIONS
     from subslope.nre import load_estimator
 
     results = tiny_run
@@ -306,8 +308,8 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
     for name in ("hst_result", "cdm_prediction", "coverage", "trend", "stage_runtime"):
         assert (results / f"{name}.csv").is_file(), name
     runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
-    assert runtime.loc["simulation", "jobs"] == 7 and runtime.loc["training", "seconds"] > 0
-    assert runtime.loc["inference", "jobs"] == 4
+    assert runtime.loc["simulate", "jobs"] == 7 and runtime.loc["train", "seconds"] > 0
+    assert runtime.loc["evaluate", "jobs"] == 4
     assert (workdir / "logs" / "train_estimator.log").read_text().count("training done") == 1
 
 

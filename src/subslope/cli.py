@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 import yaml
 
-from subslope import __version__
+from subslope._version import __version__
 
 __all__ = ["main", "build_parser"]
 
@@ -51,7 +51,7 @@ def _validate_config(args: argparse.Namespace) -> int:
 
 
 def _fetch_data(args: argparse.Namespace) -> int:
-    from subslope.resources import ResourceError, fetch
+    from subslope.io.resources import ResourceError, fetch
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
@@ -74,8 +74,8 @@ def _load_config(path):
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from subslope.shards import ShardError
-    from subslope.simulate import simulate_shard
+    from subslope.io.shards import ShardError
+    from subslope.simulation.shard import simulate_shard
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     config = _load_config(args.config)
@@ -96,8 +96,9 @@ def _preview(args: argparse.Namespace) -> int:
     import math
     import tempfile
 
-    from subslope.plotting import plot_scene_examples_from_shard
-    from subslope.simulate import resolved_scene, scene_multipliers, simulate_shard
+    from subslope.figures.data import plot_scene_examples_from_shard
+    from subslope.simulation.scenes import resolved_scene, scene_multipliers
+    from subslope.simulation.shard import simulate_shard
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     config = _load_config(args.config)
@@ -124,7 +125,7 @@ def _preview(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from subslope.campaign import run_training, training_section
+    from subslope.stages.train import run_training, training_section
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     config = _load_config(args.config)
@@ -144,8 +145,8 @@ def _train(args: argparse.Namespace) -> int:
 def _analyze_hst(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from subslope.campaign import analyze_hst
-    from subslope.inference import gamma_grid
+    from subslope.stages.hst import analyze_hst
+    from subslope.stats.intervals import gamma_grid
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     config = _load_config(args.config)

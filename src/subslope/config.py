@@ -15,6 +15,8 @@ the offending value and what is allowed.
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import os
 from collections.abc import Mapping
 from importlib import resources as importlib_resources
@@ -22,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
+import numpy as np
 import yaml
 
 __all__ = [
@@ -29,10 +32,16 @@ __all__ = [
     "MIRROR_ENV_VAR",
     "schema_path",
     "load_schema",
+    "schema_defaults",
     "fill_defaults",
     "validate",
+    "cross_key_problems",
+    "active_stages",
+    "STAGE_NEEDS",
     "load",
     "apply_env_overrides",
+    "canonical_json",
+    "config_hash",
 ]
 
 #: Environment variable that overrides ``data.mirror``.
@@ -52,6 +61,18 @@ def load_schema() -> dict[str, Any]:
     """The configuration schema as a dictionary."""
     with open(schema_path(), encoding="utf-8") as handle:
         return yaml.safe_load(handle)
+
+
+def schema_defaults(section: str, schema: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """``{key: default}`` of the keys of a config section given by its dotted path
+    (``"simulation.render"``, ``"instrument"``), from the schema."""
+    node: Mapping[str, Any] = load_schema() if schema is None else schema
+    for part in section.split("."):
+        try:
+            node = node["properties"][part]
+        except KeyError:
+            raise ConfigError(f"the schema has no config section {section!r}") from None
+    return {k: copy.deepcopy(v["default"]) for k, v in node.get("properties", {}).items() if "default" in v}
 
 
 def fill_defaults(config: Mapping[str, Any], schema: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -127,9 +148,12 @@ def _describe(error: jsonschema.ValidationError) -> str:
 
 
 def validate(config: Mapping[str, Any], *, fill: bool = True) -> dict[str, Any]:
-    """Validate ``config`` against the schema and return it with defaults filled.
+    """Validate ``config`` and return it with defaults filled: the one validation of a
+    campaign configuration (the workflow and ``subslope validate-config`` both call it).
 
-    Raises :class:`ConfigError` listing every problem, one per line, each naming its key.
+    First the schema (types, ranges, unknown keys), then every check that involves
+    several keys (:func:`cross_key_problems`). Raises :class:`ConfigError` listing every
+    problem, one per line, each naming its key and what is allowed.
     """
     if not isinstance(config, Mapping):
         raise ConfigError(f"the configuration must be a mapping of keys, got {type(config).__name__}")
@@ -137,10 +161,109 @@ def validate(config: Mapping[str, Any], *, fill: bool = True) -> dict[str, Any]:
     full = fill_defaults(config, schema) if fill else copy.deepcopy(dict(config))
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(full), key=lambda e: [str(p) for p in e.absolute_path])
-    if errors:
-        lines = "\n".join("  - " + _describe(e) for e in errors)
-        raise ConfigError(f"invalid configuration ({len(errors)} problem(s)):\n{lines}")
+    problems = [_describe(e) for e in errors] or cross_key_problems(full)
+    if problems:
+        lines = "\n".join("  - " + p for p in problems)
+        raise ConfigError(f"invalid configuration ({len(problems)} problem(s)):\n{lines}")
     return full
+
+
+#: The stages each stage needs (a stage runs only when it and all of these are on).
+STAGE_NEEDS: dict[str, tuple[str, ...]] = {
+    "gallery": (),
+    "simulate": (),
+    "train": ("simulate",),
+    "evaluate": ("train",),
+    "calibrate": ("evaluate",),
+    "cdm_grid": ("evaluate",),
+    "hst": ("calibrate",),
+    "figures": ("train",),
+    "summary": ("figures",),
+}
+
+
+def active_stages(config: Mapping[str, Any]) -> dict[str, bool]:
+    """``{stage: runs}``: a stage runs when its flag and the flags of every stage it needs
+    (:data:`STAGE_NEEDS`) are on, so a switched-off stage never runs as a dependency."""
+    flags = config["stages"]
+
+    def on(name: str) -> bool:
+        return bool(flags[name]) and all(on(need) for need in STAGE_NEEDS[name])
+
+    return {name: on(name) for name in STAGE_NEEDS}
+
+
+def _scene_value(config: Mapping[str, Any], scene: str, key: str) -> Any:
+    """The value at dotted ``key`` of scene ``scene``: the config's, else its preset's,
+    else the paper scene's (``schemas/scene_presets.yaml``)."""
+    presets = _scene_presets()
+    layers = [(config.get("scenes") or {}).get(scene) or {}, presets["presets"].get(scene, {}),
+              presets["paper_scene"]]
+    for layer in layers:
+        value: Any = layer
+        for part in key.split("."):
+            value = value.get(part, _MISSING) if isinstance(value, Mapping) else _MISSING
+        if value is not _MISSING:
+            return value
+    raise KeyError(f"scenes.{scene}.{key}")
+
+
+_MISSING = object()
+
+
+def _scene_presets() -> dict[str, Any]:
+    with open(schema_path().with_name("scene_presets.yaml"), encoding="utf-8") as handle:
+        return yaml.safe_load(handle)
+
+
+def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
+    """Problems that involve several keys of a schema-valid ``config`` (defaults filled).
+
+    Checked: the γ grid's order; every simulated scene's shard size against its
+    ``images_per_set``; for the stages that run, the calibration and CDM scenes exist in
+    ``simulation.scenes``, the calibrated stack sizes fit the stack scene's sets, and the
+    CDM grid includes the prediction multiplier a = 1.
+    """
+    problems: list[str] = []
+    grid = config["inference"]["gamma_grid"]
+    if not grid["low"] < grid["high"]:
+        problems.append(f"config keys inference.gamma_grid.low/high = {grid['low']!r}/{grid['high']!r}: "
+                        "need low < high")
+    simulated = config["simulation"]["scenes"]
+    for name, counts in simulated.items():
+        per_set = _scene_value(config, name, "images_per_set")
+        if isinstance(per_set, int) and per_set > 0 and counts["images_per_shard"] % per_set:
+            problems.append(f"config key simulation.scenes.{name}.images_per_shard = {counts['images_per_shard']} "
+                            f"must be a multiple of scenes.{name}.images_per_set = {per_set}")
+    stages = active_stages(config)
+    cal, cdm = config["calibration"], config["cdm"]
+
+    def need_scene(key: str, name: str) -> bool:
+        if name in simulated:
+            return True
+        problems.append(f"config key {key} = {name!r}: no shards of that scene; simulated scenes "
+                        f"(simulation.scenes): {', '.join(sorted(simulated)) or 'none'}")
+        return False
+
+    if stages["calibrate"]:
+        need_scene("calibration.single_scene", cal["single_scene"])
+        if need_scene("calibration.stack_scene", cal["stack_scene"]):
+            per_set = _scene_value(config, cal["stack_scene"], "images_per_set")
+            too_big = [n for n in cal["n_images"] if n > 1 and n > per_set]
+            if too_big:
+                problems.append(f"config key calibration.n_images = {sorted(cal['n_images'])}: N > 1 must not "
+                                f"exceed the images_per_set = {per_set} of calibration.stack_scene "
+                                f"{cal['stack_scene']!r} (too large: {too_big})")
+    if stages["cdm_grid"]:
+        if need_scene("cdm.nfw_scene", cdm["nfw_scene"]):
+            mults = (config["simulation"]["multipliers"]
+                     or _scene_value(config, cdm["nfw_scene"], "concentration.multipliers"))
+            if 1.0 not in [float(a) for a in mults]:
+                problems.append(f"config key simulation.multipliers = {list(mults)} must include 1.0 "
+                                "(the CDM prediction, a = 1)")
+        if cdm["tnfw_scene"]:
+            need_scene("cdm.tnfw_scene", cdm["tnfw_scene"])
+    return problems
 
 
 def apply_env_overrides(config: dict[str, Any]) -> dict[str, Any]:
@@ -175,3 +298,23 @@ def load(path: str | os.PathLike[str], *, env: bool = True) -> dict[str, Any]:
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     return apply_env_overrides(config) if env else config
+
+
+def canonical_json(obj: Any) -> str:
+    """Deterministic JSON (sorted keys, no spaces, numpy scalars as Python numbers)."""
+
+    def default(o):
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, (Path,)):
+            return str(o)
+        raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=default, allow_nan=False)
+
+
+def config_hash(sections: Mapping[str, Any]) -> str:
+    """SHA-256 (hex) of the canonical JSON of ``sections``."""
+    return hashlib.sha256(canonical_json(sections).encode()).hexdigest()

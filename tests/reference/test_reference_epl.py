@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.profiles.epl import epl_convergence_theta_e, epl_deflection_theta_e
-from subslope.profiles.multipole import multipole_convergence, multipole_deflection
-from subslope.profiles.shear import shear_deflection
+from subslope.physics.profiles.epl import epl_convergence_theta_e, epl_deflection_theta_e
+from subslope.physics.profiles.multipole import multipole_convergence, multipole_deflection
+from subslope.physics.profiles.shear import shear_deflection
 
 pytestmark = pytest.mark.reference
 F64 = torch.float64

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.grid import pixel_grid
-from subslope.instrument import Instrument, noise_sigma_map
-from subslope.light import sersic_ellipse, sersic_total_flux
+from subslope.physics.grid import pixel_grid
+from subslope.physics.instrument import Instrument, noise_sigma_map
+from subslope.physics.light import sersic_ellipse, sersic_total_flux
 
 pytestmark = pytest.mark.reference
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from subslope import cosmology as cos
-from subslope.profiles import nfw, tnfw
+from subslope.physics import cosmology as cos
+from subslope.physics.profiles import nfw, tnfw
 
 pytestmark = pytest.mark.reference
 

@@ -3,27 +3,26 @@
 import os
 
 from snakemake.logging import logger
-from snakemake.utils import validate
+from snakemake.exceptions import WorkflowError
 
-import subslope.campaign
+import subslope.stages.plan
 import subslope.config
-import subslope.resources
-import subslope.shards
-import subslope.simulate
+import subslope.io.resources
+import subslope.simulation.scenes
+import subslope.stages.train
 
 
-# Validate once, when the workflow loads, against the schema shipped in the package
-# (workflow/schemas/config.schema.yaml links to it). The first check gives a readable
-# message naming the key and its allowed range; Snakemake's own validate() then fills
-# the schema defaults into `config` in place (both use the same schema file).
-subslope.config.validate(config)
-
-
-validate(config, schema="../schemas/config.schema.yaml")
+# Validate once, when the workflow loads: the schema (types, ranges, defaults filled
+# in) and every cross-key check, with messages that name the key and what is allowed.
+# workflow/schemas/config.schema.yaml links to the same schema for `snakemake --lint`.
+try:
+    config.update(subslope.config.validate(config))
+except subslope.config.ConfigError as exc:
+    raise WorkflowError(str(exc)) from None
 subslope.config.apply_env_overrides(config)  # SUBSLOPE_DATA_MIRROR -> data.mirror
 
 RESOURCES = config["data"]["resources_dir"]
-REGISTRY = subslope.resources.load_registry()
+REGISTRY = subslope.io.resources.load_registry()
 
 
 def resource_files(prefix):
@@ -36,10 +35,11 @@ def resource_files(prefix):
 
 
 # Simulation: one entry {scene, shard, multiplier, path} per shard file of the config.
-SHARD_JOBS = subslope.simulate.shard_jobs(config)
+SHARD_JOBS = subslope.stages.plan.shard_jobs(config)
 SIM_SCENES = sorted({job["scene"] for job in SHARD_JOBS})
-# Scene names: letters, digits, '_' (no '/', so the CDM pattern <scene>/a<a>/ never clashes).
-SCENE_WILDCARD = r"[A-Za-z][A-Za-z0-9_]*"
+
+
+
 
 
 def simulation_hash(scene):
@@ -50,13 +50,24 @@ def simulation_hash(scene):
     their profiles) valid and only the new multiplier is simulated and evaluated.
     """
     if scene not in _SIM_HASH:  # cached: the config is validated again for every call
-        sections = subslope.simulate.simulation_sections(config, scene)
+        sections = subslope.simulation.scenes.simulation_sections(config, scene)
         sections.pop("multipliers", None)
-        _SIM_HASH[scene] = subslope.shards.config_hash(sections)
+        _SIM_HASH[scene] = subslope.config.config_hash(sections)
     return _SIM_HASH[scene]
 
 
 _SIM_HASH = {}
+
+
+def shard_job(wildcards):
+    """The resolved configuration of one shard job, passed as a param (so a change reruns it)."""
+    key = (wildcards.scene, wildcards.get("multiplier"))
+    if key not in _SHARD_JOB:  # cached per scene and multiplier: the shards share it
+        _SHARD_JOB[key] = subslope.stages.plan.shard_job_config(config, *key)
+    return _SHARD_JOB[key]
+
+
+_SHARD_JOB = {}
 
 
 def shard_files(scene):
@@ -81,25 +92,9 @@ def simulation_targets():
 
 
 # ---------------------------------------------------------------------------------------
-# Stages. A stage runs when its flag and the flags of every stage it needs are on, so a
-# switched-off stage never runs as a dependency of a later one.
-STAGE_NEEDS = {
-    "gallery": [],
-    "simulation": [],
-    "training": ["simulation"],
-    "inference": ["training"],
-    "calibration": ["inference"],
-    "cdm_grid": ["inference"],
-    "hst": ["calibration"],
-    "figures": ["training"],
-}
-
-
-def _stage_on(name):
-    return bool(config["stages"][name]) and all(_stage_on(need) for need in STAGE_NEEDS[name])
-
-
-STAGE_ON = {name: _stage_on(name) for name in STAGE_NEEDS}
+# Stages. A stage runs when its flag and the flags of every stage it needs are on
+# (subslope.config.STAGE_NEEDS), so a switched-off stage never runs as a dependency.
+STAGE_ON = subslope.config.active_stages(config)
 for _name, _on in STAGE_ON.items():
     if config["stages"][_name] and not _on:
         logger.warning(f"stage {_name} is on but a stage it needs is off: it does not run")
@@ -112,29 +107,6 @@ CDM = config["cdm"]
 RUN = config["run_name"]
 CAL_N = sorted(CAL["n_images"])
 GRID = config["inference"]["gamma_grid"]
-
-
-def _check_scene(key, name, need_shards=True):
-    if name not in {job["scene"] for job in SHARD_JOBS} and need_shards:
-        raise ValueError(f"config key {key} = {name!r}: no shards of that scene (simulation.scenes.{name})")
-
-
-if STAGE_ON["calibration"]:
-    _check_scene("calibration.single_scene", CAL["single_scene"])
-    _check_scene("calibration.stack_scene", CAL["stack_scene"])
-    _per_set = subslope.simulate.resolved_scene(config, CAL["stack_scene"])[0].images_per_set
-    if any(n > _per_set for n in CAL_N if n > 1):
-        raise ValueError(f"config key calibration.n_images = {CAL_N}: N > 1 must not exceed the "
-                         f"images_per_set = {_per_set} of calibration.stack_scene {CAL['stack_scene']!r}")
-if STAGE_ON["cdm_grid"]:
-    _check_scene("cdm.nfw_scene", CDM["nfw_scene"])
-    if CDM["tnfw_scene"]:
-        _check_scene("cdm.tnfw_scene", CDM["tnfw_scene"])
-    _mults = {job["multiplier"] for job in SHARD_JOBS if job["scene"] == CDM["nfw_scene"]}
-    if 1.0 not in _mults:
-        raise ValueError("config key simulation.multipliers must include 1.0 (the CDM prediction, a = 1)")
-if GRID["low"] >= GRID["high"]:
-    raise ValueError(f"config keys inference.gamma_grid.low/high: need low < high, got {GRID}")
 
 
 def eval_scenes():
@@ -172,37 +144,37 @@ def cdm_inputs():
 def derived_seed(section):
     """The section's seed, or one derived from the global seed when it is null."""
     value = config[section].get("seed")
-    return subslope.campaign.derived_seed(config["seed"], section) if value is None else int(value)
+    return subslope.stages.plan.derived_seed(config["seed"], section) if value is None else int(value)
 
 
 def benchmark_files():
     """Benchmark TSVs of every job of the stages that run, grouped by stage."""
     out = {}
-    if STAGE_ON["simulation"]:
-        out["simulation"] = [
+    if STAGE_ON["simulate"]:
+        out["simulate"] = [
             job["path"].replace("results/simulate_shard/", "results/benchmarks/simulate_shard/").replace(".h5", ".tsv")
             for job in SHARD_JOBS
         ]
         if shard_files("train"):
-            out["simulation"].append("results/benchmarks/compute_whitening.tsv")
-    if STAGE_ON["training"]:
-        out["training"] = ["results/benchmarks/train_estimator.tsv"]
-    if STAGE_ON["inference"]:
-        out["inference"] = [
+            out["simulate"].append("results/benchmarks/compute_whitening.tsv")
+    if STAGE_ON["train"]:
+        out["train"] = ["results/benchmarks/train_estimator.tsv"]
+    if STAGE_ON["evaluate"]:
+        out["evaluate"] = [
             profile_path(job).replace("results/evaluate_profiles/", "results/benchmarks/evaluate_profiles/").replace(".h5", ".tsv")
             for job in SHARD_JOBS
             if job["scene"] in eval_scenes()
         ]
-    if STAGE_ON["calibration"]:
-        out["calibration"] = [f"results/benchmarks/calibrate_threshold/N{n}.tsv" for n in CAL_N]
-        out["calibration"].append("results/benchmarks/summarize_coverage.tsv")
+    if STAGE_ON["calibrate"]:
+        out["calibrate"] = [f"results/benchmarks/calibrate_threshold/N{n}.tsv" for n in CAL_N]
+        out["calibrate"].append("results/benchmarks/summarize_coverage.tsv")
     if STAGE_ON["cdm_grid"]:
         out["cdm_grid"] = ["results/benchmarks/measure_cdm_grid.tsv"]
     if STAGE_ON["hst"]:
         out["hst"] = ["results/benchmarks/analyze_hst.tsv"]
     if STAGE_ON["figures"]:
         out["figures"] = ["results/benchmarks/plot_training_curves.tsv"]
-        if STAGE_ON["calibration"]:
+        if STAGE_ON["calibrate"]:
             out["figures"].append("results/benchmarks/plot_validation.tsv")
     return out
 
@@ -212,13 +184,13 @@ def all_targets():
     targets = list(rules.fetch_data.output)
     if STAGE_ON["gallery"]:
         targets += rules.plot_hst_gallery.output
-    if STAGE_ON["simulation"]:
+    if STAGE_ON["simulate"]:
         targets += simulation_targets()
-    if STAGE_ON["training"]:
+    if STAGE_ON["train"]:
         targets += rules.train_estimator.output
-    if STAGE_ON["inference"]:
+    if STAGE_ON["evaluate"]:
         targets += [profile_path(job) for job in SHARD_JOBS if job["scene"] in eval_scenes()]
-    if STAGE_ON["calibration"]:
+    if STAGE_ON["calibrate"]:
         targets += rules.summarize_coverage.output
     if STAGE_ON["cdm_grid"]:
         targets += rules.measure_cdm_grid.output
@@ -226,8 +198,9 @@ def all_targets():
         targets += rules.analyze_hst.output
     if STAGE_ON["figures"]:
         targets += rules.plot_training_curves.output
-        if STAGE_ON["calibration"]:
+        if STAGE_ON["calibrate"]:
             targets += rules.plot_validation.output
+    if STAGE_ON["summary"]:
         targets += rules.write_summary.output
     return targets
 
@@ -237,19 +210,19 @@ def all_targets():
 # as "not run"); its CSVs sit beside results/summary.md.
 SUMMARY_CSVS = ["hst_result", "cdm_prediction", "coverage", "trend", "stage_runtime"]
 # Hash of the whole validated config except the data location (machine-specific).
-CONFIG_HASH = subslope.shards.config_hash({k: v for k, v in config.items() if k != "data"})[:16]
+CONFIG_HASH = subslope.config.config_hash({k: v for k, v in config.items() if k != "data"})[:16]
 CONFIG_FILES = [os.path.relpath(f) for f in (workflow.overwrite_configfiles or workflow.configfiles)]
 
 
 def summary_inputs(wildcards):
     inputs = {}
-    if STAGE_ON["training"]:
+    if STAGE_ON["train"]:
         inputs["training_log"] = rules.train_estimator.output.log_csv
     if STAGE_ON["hst"]:
         inputs["hst"] = rules.analyze_hst.output.csv
     if STAGE_ON["cdm_grid"]:
         inputs["cdm"] = rules.measure_cdm_grid.output.csv
-    if STAGE_ON["calibration"]:
+    if STAGE_ON["calibrate"]:
         inputs["calibration"] = rules.summarize_coverage.output.csv
         inputs["trend"] = rules.plot_validation.output.trend
     return inputs

@@ -1,27 +1,5 @@
-# Stage: figures.
-
-
-rule plot_hst_gallery:
-    input:
-        hst=rules.fetch_data.output.hst,
-    output:
-        pdf="results/figures/hst_gallery.pdf",
-        png=report(
-            "results/figures/hst_gallery.png",
-            caption="../report/hst_gallery.rst",
-            category="Data",
-        ),
-    params:
-        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
-        run_name=config["run_name"],
-        pixel_scale=config["instrument"]["pixel_scale"],
-    log:
-        "logs/plot_hst_gallery.log",
-    conda:
-        "../envs/subslope.yaml"
-    script:
-        "../scripts/plot_hst_gallery.py"
-
+# Stage: figures. Training curves and figures 2-3 with the estimator trend
+# (subslope.stages.figures).
 
 rule plot_training_curves:
     input:
@@ -76,25 +54,3 @@ rule plot_validation:
         "../envs/subslope.yaml"
     script:
         "../scripts/plot_validation.py"
-
-
-rule write_summary:
-    input:
-        unpack(summary_inputs),
-    output:
-        md="results/summary.md",
-        csv=expand("results/{name}.csv", name=SUMMARY_CSVS),
-    params:
-        run_name=RUN,
-        config_hash=CONFIG_HASH,
-        config_files=CONFIG_FILES,
-        benchmarks=benchmark_files(),
-        nfw_scene=CDM["nfw_scene"],
-        tnfw_scene=CDM["tnfw_scene"],
-    log:
-        "logs/write_summary.log",
-    threads: 1
-    conda:
-        "../envs/subslope.yaml"
-    script:
-        "../scripts/write_summary.py"

@@ -2,7 +2,7 @@
 # multiplier for the CDM scenes), the whitening statistics of the training shards and
 # one figure of example images per scene. Shards are valuable (hours of compute at
 # campaign scale): never temp(). Which shards exist comes from
-# subslope.simulate.shard_jobs(config) (counts in config["simulation"]["scenes"]).
+# subslope.stages.plan.shard_jobs(config) (counts in config["simulation"]["scenes"]).
 
 
 rule simulate_shard:
@@ -11,12 +11,10 @@ rule simulate_shard:
         cosmos=rules.fetch_data.output.cosmos,
     output:
         h5="results/simulate_shard/{scene}/shard_{shard}.h5",
-    wildcard_constraints:
-        scene=SCENE_WILDCARD,
-        shard=r"[0-9]+",
     params:
-        # Changes of any config value that affects this scene's images rerun the job.
-        config_hash=lambda wildcards: simulation_hash(wildcards.scene),
+        # The resolved values that determine this shard's images: a change of any of
+        # them reruns the job, and nothing else does (subslope.stages.plan.shard_job_config).
+        job=shard_job,
     log:
         "logs/simulate_shard/{scene}/shard_{shard}.log",
     benchmark:
@@ -34,10 +32,6 @@ rule simulate_shard:
 use rule simulate_shard as simulate_cdm_shard with:
     output:
         h5="results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5",
-    wildcard_constraints:
-        scene=SCENE_WILDCARD,
-        shard=r"[0-9]+",
-        multiplier=r"[0-9]+(\.[0-9]+)?(e[-+]?[0-9]+)?",
     log:
         "logs/simulate_shard/{scene}/a{multiplier}/shard_{shard}.log",
     benchmark:
@@ -72,8 +66,6 @@ rule plot_scene_examples:
             caption="../report/scene_examples.rst",
             category="Simulation",
         ),
-    wildcard_constraints:
-        scene=SCENE_WILDCARD,
     params:
         run_name=config["run_name"],
         n_examples=8,

@@ -5,8 +5,8 @@
 # from last.pt. <key> hashes the training section and the data, so a changed config or
 # changed shards start a fresh folder instead of resuming an incompatible run.
 
-TRAINING = subslope.campaign.training_section(config)
-CKPT_KEY = subslope.campaign.checkpoint_key(
+TRAINING = subslope.stages.train.training_section(config)
+CKPT_KEY = subslope.stages.train.checkpoint_key(
     TRAINING,
     shard_files("train"),
     shard_files("validation"),

@@ -4,8 +4,8 @@ import logging
 
 import torch
 
-from subslope.campaign import analyze_hst
-from subslope.inference import gamma_grid
+from subslope.stages.hst import analyze_hst
+from subslope.stats.intervals import gamma_grid
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.campaign import calibrate_stack_size
+from subslope.stages.calibrate import calibrate_stack_size
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

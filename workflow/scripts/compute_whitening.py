@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.whitening import compute_whitening
+from subslope.stages.simulate import compute_whitening
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

@@ -4,8 +4,8 @@ import logging
 
 import torch
 
-from subslope.campaign import evaluate_shard
-from subslope.inference import gamma_grid
+from subslope.stages.evaluate import evaluate_shard
+from subslope.stats.intervals import gamma_grid
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

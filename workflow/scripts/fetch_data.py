@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.resources import fetch_files
+from subslope.stages.data import fetch_files
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.campaign import measure_cdm_grid
+from subslope.stages.cdm_grid import measure_cdm_grid
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

@@ -2,16 +2,13 @@
 
 import logging
 
-from subslope.observations import load_hst
-from subslope.plotting import plot_hst_gallery
 from subslope.logs import log_to_file
+from subslope.stages.gallery import plot_gallery
 
 log_to_file(snakemake.log[0])
 try:
-    observations = load_hst(snakemake.params.folder)
-    logging.info("loaded %d cutouts: %s", len(observations), [o.name for o in observations])
-    plot_hst_gallery(
-        observations,
+    plot_gallery(
+        snakemake.params.folder,
         [snakemake.output.pdf, snakemake.output.png],
         run_name=snakemake.params.run_name,
         pixel_scale=snakemake.params.pixel_scale,

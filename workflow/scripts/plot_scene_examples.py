@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.plotting import plot_scene_examples_from_shard
+from subslope.stages.simulate import plot_scene_examples_from_shard
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

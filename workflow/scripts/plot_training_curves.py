@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.campaign import plot_training_curves
+from subslope.stages.figures import plot_training_curves
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

@@ -4,7 +4,7 @@ import logging
 
 import json
 
-from subslope.campaign import plot_validation
+from subslope.stages.figures import plot_validation
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

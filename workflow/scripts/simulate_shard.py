@@ -4,20 +4,20 @@ import logging
 
 import torch
 
-from subslope.simulate import simulate_shard
 from subslope.logs import log_to_file
+from subslope.stages.simulate import simulate_shard_job
 
 log_to_file(snakemake.log[0])
 try:
     torch.set_num_threads(snakemake.threads)
     multiplier = snakemake.wildcards.get("multiplier")
-    simulate_shard(
+    simulate_shard_job(
+        snakemake.params.job,
         snakemake.config,
         snakemake.wildcards.scene,
         int(snakemake.wildcards.shard),
         snakemake.output.h5,
         multiplier=None if multiplier is None else float(multiplier),
-        progress=False,
     )
 except Exception:
     logging.exception("simulate_shard failed")

@@ -2,7 +2,7 @@
 
 import logging
 
-from subslope.campaign import summarize_coverage
+from subslope.stages.calibrate import summarize_coverage
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

@@ -5,7 +5,7 @@ import os
 
 import torch
 
-from subslope.campaign import run_training
+from subslope.stages.train import run_training
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

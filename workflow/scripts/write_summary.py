@@ -4,7 +4,7 @@ import logging
 
 import json
 
-from subslope.campaign import write_summary
+from subslope.stages.summary import write_summary
 from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])

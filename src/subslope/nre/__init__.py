@@ -1,30 +1,36 @@
-"""Neural likelihood-ratio estimation of the subhalo slope γ (SCIENCE.md §7).
+"""Neural likelihood-ratio estimation of the subhalo slope γ (``docs/estimator.md``).
 
-- :mod:`~subslope.nre.preprocess`: whitening + circular mask, shared by all paths.
+- :mod:`~subslope.nre.preprocess`: whitening + circular mask, shared by all paths;
+  :mod:`~subslope.nre.whitening`: the whitening statistics of the training shards.
 - :mod:`~subslope.nre.models`: ResNet ratio estimator ``f(γ, x) = ln r̂(x|γ)``.
 - :mod:`~subslope.nre.loss`: NRE / balanced-NRE binary cross-entropy.
 - :mod:`~subslope.nre.data`: streaming, reproducibly shuffled batches from HDF5 shards.
+- :mod:`~subslope.nre.training_config`: the training section's defaults and hash.
 - :mod:`~subslope.nre.train`: resumable training loop and the ``model.pt`` artifact.
+- :mod:`~subslope.nre.evaluate`: ``ln r̂`` of images on the γ grid.
+
+The names below are imported lazily (``import subslope.nre.training_config`` needs no torch).
 """
 
-from .loss import NRELoss, negative_indices, nre_loss
-from .models import PRESETS, RatioEstimator, ResNetTrunk, build_model, model_card
-from .preprocess import preprocess, read_whitening
+from __future__ import annotations
 
-__all__ = [
-    "NRELoss",
-    "negative_indices",
-    "nre_loss",
-    "PRESETS",
-    "RatioEstimator",
-    "ResNetTrunk",
-    "build_model",
-    "model_card",
-    "preprocess",
-    "read_whitening",
-]
+import importlib
+from typing import Any
 
-from .data import ShardBatches, make_loader  # noqa: E402
-from .train import load_estimator, train  # noqa: E402
+_NAMES = {
+    "NRELoss": "loss", "negative_indices": "loss", "nre_loss": "loss",
+    "PRESETS": "models", "RatioEstimator": "models", "ResNetTrunk": "models", "build_model": "models",
+    "model_card": "models",
+    "preprocess": "preprocess", "read_whitening": "preprocess",
+    "ShardBatches": "data", "make_loader": "data",
+    "load_estimator": "train", "train": "train",
+    "log_ratio_profiles": "evaluate",
+}
 
-__all__ += ["ShardBatches", "make_loader", "load_estimator", "train"]
+__all__ = sorted(_NAMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _NAMES:
+        return getattr(importlib.import_module(f"subslope.nre.{_NAMES[name]}"), name)
+    raise AttributeError(f"module 'subslope.nre' has no attribute {name!r}")

@@ -1,6 +1,6 @@
 """Streaming, reproducibly shuffled training batches from HDF5 shards.
 
-Shard layout read here (written by :mod:`subslope.shards`): ``images`` ``(N, H, W)``
+Shard layout read here (written by :mod:`subslope.io.shards`): ``images`` ``(N, H, W)``
 float32 e⁻/s per pixel; ``params/gamma_sub``, ``params/theta_e``, ``params/lens_x``,
 ``params/lens_y`` ``(N,)``; root attribute ``complete = True``.
 
@@ -43,6 +43,7 @@ import h5py
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
+from subslope.physics.instrument import PIXEL_SCALE
 
 from .preprocess import preprocess, read_whitening
 
@@ -121,7 +122,7 @@ class ShardBatches(Dataset):
         block_size: int = 128,
         window: int = 1,
         drop_last: bool = False,
-        pixel_scale: float = 0.04,
+        pixel_scale: float = PIXEL_SCALE,
         mask_factor: float | None = 1.5,
         require_label: bool = True,
     ):

@@ -1,6 +1,6 @@
 """Likelihood-ratio estimator ``f(γ, x) = ln r̂(x | γ)`` for 1-channel lens images.
 
-Structure (SCIENCE.md §7)::
+Structure (docs/estimator.md)::
 
     x (B, 1, H, W) ──trunk──► z (B, C)            evaluated once per image
     (z, γ) ──normalise γ, concat──► MLP ──► logit  evaluated for every (image, γ) pair

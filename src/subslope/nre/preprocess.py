@@ -1,6 +1,6 @@
 """Image pre-processing shared by training, inference and the real HST cutouts.
 
-One transform, applied identically everywhere (SCIENCE.md §2):
+One transform, applied identically everywhere (docs/physics.md):
 
 1. whiten with two scalars measured once on the training set,
    ``x ← (x − mean) / std`` (e⁻/s per pixel → dimensionless);
@@ -12,7 +12,7 @@ The pixel grid is the package convention (docs/design.md): ``x_i = (i − (n−1
 ``image[..., j, i]`` at ``(x_i, y_j)``. A pixel is kept when its centre satisfies
 ``(x − lens_x)² + (y − lens_y)² ≤ (mask_factor·θ_E)²``.
 
-The whitening statistics are computed by :mod:`subslope.whitening` (workflow rule
+The whitening statistics are computed by :mod:`subslope.nre.whitening` (workflow rule
 ``compute_whitening``); :func:`read_whitening` accepts its JSON (keys ``mean`` and
 ``std``; other keys are ignored), a mapping or a ``(mean, std)`` pair.
 """
@@ -26,6 +26,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
+from subslope.physics.instrument import PIXEL_SCALE
 
 __all__ = ["preprocess", "read_whitening", "Whitening"]
 
@@ -74,7 +75,7 @@ def preprocess(
     mean: float,
     std: float,
     *,
-    pixel_scale: float = 0.04,
+    pixel_scale: float = PIXEL_SCALE,
     mask_factor: float | None = 1.5,
 ):
     """Whiten and mask lens images.

@@ -5,7 +5,7 @@ Objective: the NRE loss of :mod:`subslope.nre.loss` on batches streamed by
 ``lr_patience`` stagnant epochs, ``lr_cooldown`` epochs of cool-down) on the validation
 loss; training stops when the validation loss has not improved on its best value by
 more than ``min_delta`` for ``early_stop_patience`` consecutive epochs, or at
-``max_epochs`` (SCIENCE.md §7).
+``max_epochs`` (docs/estimator.md).
 
 Checkpoints (``ckpt_dir``, kept outside the workflow's declared outputs):
 
@@ -30,11 +30,9 @@ its hash, and the training log; :func:`load_estimator` rebuilds the model from i
 
 from __future__ import annotations
 
-import copy
 import csv
-import hashlib
-import json
 import logging
+from dataclasses import dataclass, field
 import math
 import os
 import random
@@ -49,83 +47,19 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from subslope.devices import pick_device
+
 from .data import ShardBatches, make_loader, read_labels
+from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
 from .loss import NRELoss
 from .models import RatioEstimator, build_model, model_card
 from .preprocess import read_whitening
 
-__all__ = ["TRAINING_DEFAULTS", "RESUME_SAFE_KEYS", "resolve_config", "config_hash", "pick_device", "train", "load_estimator", "evaluate"]
+__all__ = ["resolve_config", "config_hash", "train", "load_estimator", "evaluate"]
 
 log = logging.getLogger(__name__)
 
-#: Keys of the ``training:`` config section and their defaults.
-TRAINING_DEFAULTS: dict[str, Any] = {
-    "arch": {"preset": "reduced"},  # models.build_model dict
-    "batch_size": 256,
-    "val_batch_size": None,  # None: batch_size
-    "lr": 1.0e-3,
-    "weight_decay": 1.0e-2,
-    "lr_factor": 0.1,
-    "lr_patience": 3,
-    "lr_cooldown": 2,
-    "max_epochs": 30,
-    "min_delta": 1.0e-3,
-    "early_stop_patience": 5,
-    "bnre_lambda": 0.0,
-    "negatives": "roll",  # or "derangement"
-    "seed": 0,
-    "block_size": 128,
-    "shuffle_window": 1,
-    "num_workers": 0,
-    "checkpoint_every": 1000,  # optimiser steps; 0: only at the end of epochs
-    "amp": "auto",  # CUDA only: auto (bf16 if supported, else fp16), bf16, fp16, off
-    "deterministic": False,
-    "max_steps": None,  # stop (after a checkpoint) once this many steps are done in total
-    "progress": True,
-    "pixel_scale": 0.04,
-    "mask_factor": 1.5,
-}
-
-#: Keys that may differ between an interrupted run and its resumption.
-RESUME_SAFE_KEYS = frozenset({"max_epochs", "early_stop_patience", "num_workers", "checkpoint_every", "max_steps", "progress", "val_batch_size"})
-
 LOG_COLUMNS = ("epoch", "train_loss", "val_loss", "lr", "seconds", "images_per_s")
-
-
-def resolve_config(config: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The training section with defaults filled in; unknown keys raise ``ValueError``."""
-    cfg = copy.deepcopy(TRAINING_DEFAULTS)
-    config = dict(config or {})
-    unknown = set(config) - set(cfg)
-    if unknown:
-        raise ValueError(f"training: unknown key(s) {sorted(unknown)}; allowed: {sorted(cfg)}")
-    cfg.update(copy.deepcopy(config))
-    for key in ("batch_size", "max_epochs", "lr_patience", "lr_cooldown", "early_stop_patience", "block_size", "shuffle_window"):
-        v = cfg[key]
-        low = 0 if key in ("lr_patience", "lr_cooldown") else 1
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
-            raise ValueError(f"training.{key} must be an integer >= {low}, got {v!r}")
-    if cfg["batch_size"] < 2:
-        raise ValueError(f"training.batch_size must be >= 2 (negatives are formed within a batch), got {cfg['batch_size']}")
-    if cfg["amp"] not in ("auto", "bf16", "fp16", "off"):
-        raise ValueError(f"training.amp must be one of auto, bf16, fp16, off; got {cfg['amp']!r}")
-    if not (cfg["lr"] > 0 and cfg["weight_decay"] >= 0 and 0 < cfg["lr_factor"] < 1 and cfg["min_delta"] >= 0):
-        raise ValueError("training: need lr > 0, weight_decay >= 0, 0 < lr_factor < 1, min_delta >= 0; got "
-                         f"lr={cfg['lr']!r}, weight_decay={cfg['weight_decay']!r}, lr_factor={cfg['lr_factor']!r}, min_delta={cfg['min_delta']!r}")
-    return cfg
-
-
-def config_hash(cfg: Mapping[str, Any]) -> str:
-    """SHA-256 (16 hex digits) of the training section without the resume-safe keys."""
-    core = {k: v for k, v in cfg.items() if k not in RESUME_SAFE_KEYS}
-    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def pick_device(device=None) -> torch.device:
-    """``device`` if given, else CUDA when available, else CPU."""
-    if device is not None:
-        return torch.device(device)
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 def _amp_dtype(cfg, device: torch.device) -> torch.dtype | None:
@@ -248,12 +182,43 @@ def train(
         torch.backends.cudnn.benchmark = prev_bench
 
 
-def _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, last_path, best_path, device, amp_dtype):
+@dataclass
+class _Run:
+    """Everything one training run carries between its steps."""
+
+    cfg: dict[str, Any]
+    chash: str
+    model: RatioEstimator
+    opt: Any
+    sched: Any
+    scaler: Any
+    loss_fn: NRELoss
+    val_loss_fn: NRELoss
+    device: torch.device
+    amp_dtype: torch.dtype | None
+    last_path: Path
+    best_path: Path
+    state: dict[str, Any] = field(default_factory=lambda: {
+        "epoch": 0, "batch_in_epoch": 0, "step": 0, "best_val": math.inf, "bad_epochs": 0,
+        "history": [], "loss_sum": 0.0, "loss_count": 0, "train_seconds": 0.0, "finished": False,
+        "stop_reason": None,
+    })
+
+    def checkpoint(self) -> None:
+        _atomic_save({
+            "config": self.cfg, "config_hash": self.chash, "model": self.model.state_dict(),
+            "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(),
+            "scaler": self.scaler.state_dict() if self.scaler is not None else None,
+            "rng": _rng_state(), "state": self.state,
+        }, self.last_path)
+
+
+def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_path: Path) -> _Run:
+    """Seed every generator, build the model, optimiser, scheduler and losses."""
     labels = read_labels(train_shards)
     gamma_mean, gamma_std = float(labels.mean()), float(labels.std())
     if not gamma_std > 0:
         raise ValueError(f"training labels params/gamma_sub have zero spread (all {gamma_mean}); need varied γ")
-
     seed = int(cfg["seed"])
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
@@ -267,139 +232,173 @@ def _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, l
     scaler = torch.amp.GradScaler("cuda") if amp_dtype == torch.float16 else None
     loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives=cfg["negatives"])
     val_loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives="roll")  # a fixed function of the weights
+    return _Run(cfg, chash, model, opt, sched, scaler, loss_fn, val_loss_fn, device, amp_dtype, last_path, best_path)
 
-    state: dict[str, Any] = {
-        "epoch": 0, "batch_in_epoch": 0, "step": 0, "best_val": math.inf, "bad_epochs": 0,
-        "history": [], "loss_sum": 0.0, "loss_count": 0, "train_seconds": 0.0, "finished": False, "stop_reason": None,
+
+def _resume(run: _Run, ckpt_dir) -> None:
+    """Continue from ``last.pt`` when it exists: weights, optimiser, scheduler, scaler,
+    random states and the loop position."""
+    if not run.last_path.exists():
+        return
+    ck = torch.load(run.last_path, map_location=run.device, weights_only=True)
+    cfg = run.cfg
+    if ck["config_hash"] != run.chash:
+        changed = sorted(k for k in cfg if k not in RESUME_SAFE_KEYS and ck["config"].get(k) != cfg[k])
+        raise ValueError(f"checkpoint {run.last_path} was written with a different training config "
+                         f"(changed: {changed}); delete {ckpt_dir} to start afresh")
+    run.model.load_state_dict(ck["model"])
+    run.opt.load_state_dict(ck["optimizer"])
+    run.sched.load_state_dict(ck["scheduler"])
+    if run.scaler is not None and ck.get("scaler"):
+        run.scaler.load_state_dict(ck["scaler"])
+    _set_rng_state(ck["rng"])
+    run.state.update(ck["state"])
+    if run.state["finished"]:
+        run.state["stop_reason"] = run.state.get("stop_reason") or "finished"
+    log.info("resumed from %s at epoch %d, batch %d, step %d", run.last_path, run.state["epoch"],
+             run.state["batch_in_epoch"], run.state["step"])
+
+
+def _step(run: _Run, batch, pin: bool) -> int:
+    """One optimiser step on ``batch``; returns the number of images."""
+    x = batch["x"].to(run.device, non_blocking=pin)
+    g = batch["gamma"].to(run.device, non_blocking=pin)
+    ctx = torch.autocast(run.device.type, dtype=run.amp_dtype) if run.amp_dtype is not None else nullcontext()
+    with ctx:
+        loss = run.loss_fn(g, x)
+    run.opt.zero_grad(set_to_none=True)
+    if run.scaler is not None:
+        run.scaler.scale(loss).backward()
+        run.scaler.step(run.opt)
+        run.scaler.update()
+    else:
+        loss.backward()
+        run.opt.step()
+    lv = float(loss.detach())
+    if not math.isfinite(lv):
+        raise FloatingPointError(f"training loss is {lv} at epoch {run.state['epoch']}, step {run.state['step']}")
+    n = x.shape[0]
+    state = run.state
+    state["loss_sum"] += lv * n
+    state["loss_count"] += n
+    state["step"] += 1
+    state["batch_in_epoch"] += 1
+    return n
+
+
+def _train_epoch(run: _Run, train_ds, max_steps) -> bool:
+    """The rest of the current epoch; True when ``max_steps`` stopped it (checkpointed)."""
+    cfg, state = run.cfg, run.state
+    pin = run.device.type == "cuda"
+    epoch = state["epoch"]
+    train_ds.set_epoch(epoch)
+    loader = make_loader(train_ds, start=state["batch_in_epoch"], num_workers=cfg["num_workers"], pin_memory=pin)
+    t0 = time.perf_counter()
+    bar = tqdm(loader, total=len(train_ds), initial=state["batch_in_epoch"], desc=f"epoch {epoch}",
+               disable=not cfg["progress"], file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
+    for batch in bar:
+        _step(run, batch, pin)
+        if state["step"] % 20 == 0:
+            bar.set_postfix(loss=f"{state['loss_sum'] / state['loss_count']:.4f}", refresh=False)
+        stop = max_steps is not None and state["step"] >= max_steps
+        if stop or (cfg["checkpoint_every"] and state["step"] % cfg["checkpoint_every"] == 0):
+            state["train_seconds"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            run.checkpoint()
+        if stop:
+            bar.close()
+            log.info("stopped at max_steps=%d (epoch %d, batch %d); call train() again to resume", max_steps, epoch,
+                     state["batch_in_epoch"])
+            return True
+    bar.close()
+    state["train_seconds"] += time.perf_counter() - t0
+    return False
+
+
+def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
+    """Validate, step the scheduler, keep the best weights, decide on stopping and
+    checkpoint."""
+    cfg, state = run.cfg, run.state
+    epoch = state["epoch"]
+    tv = time.perf_counter()
+    val = evaluate(run.model, val_ds, run.val_loss_fn, run.device, num_workers=cfg["num_workers"],
+                   amp_dtype=run.amp_dtype)
+    val_seconds = time.perf_counter() - tv
+    lr = run.opt.param_groups[0]["lr"]
+    run.sched.step(val)
+    row = {
+        "epoch": epoch, "train_loss": state["loss_sum"] / max(state["loss_count"], 1), "val_loss": val, "lr": lr,
+        "seconds": state["train_seconds"] + val_seconds,
+        "images_per_s": state["loss_count"] / max(state["train_seconds"], 1e-9),
     }
-    if last_path.exists():
-        ck = torch.load(last_path, map_location=device, weights_only=True)
-        if ck["config_hash"] != chash:
-            changed = sorted(k for k in cfg if k not in RESUME_SAFE_KEYS and ck["config"].get(k) != cfg[k])
-            raise ValueError(f"checkpoint {last_path} was written with a different training config "
-                             f"(changed: {changed}); delete {ckpt_dir} to start afresh")
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        if scaler is not None and ck.get("scaler"):
-            scaler.load_state_dict(ck["scaler"])
-        _set_rng_state(ck["rng"])
-        state.update(ck["state"])
-        if state["finished"]:
-            state["stop_reason"] = state.get("stop_reason") or "finished"
-        log.info("resumed from %s at epoch %d, batch %d, step %d", last_path, state["epoch"], state["batch_in_epoch"], state["step"])
+    state["history"].append(row)
+    log.info("epoch %d: train %.5f val %.5f lr %.2e (%.1f s, %.0f img/s)", epoch, row["train_loss"], val, lr,
+             row["seconds"], row["images_per_s"])
+    if val < state["best_val"] - cfg["min_delta"]:
+        state["best_val"], state["bad_epochs"] = val, 0
+        _atomic_save({"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path)
+    else:
+        state["bad_epochs"] += 1
+        if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
+            state["best_val"] = val
+            _atomic_save({"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path)
+    state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
+    if state["bad_epochs"] >= cfg["early_stop_patience"]:
+        state["finished"], state["stop_reason"] = True, "early_stop"
+    elif state["epoch"] >= cfg["max_epochs"]:
+        state["finished"], state["stop_reason"] = True, "max_epochs"
+    run.checkpoint()
+    _write_log(state["history"], out_dir / "training_log.csv")
 
-    def checkpoint() -> None:
-        _atomic_save({
-            "config": cfg, "config_hash": chash, "model": model.state_dict(), "optimizer": opt.state_dict(),
-            "scheduler": sched.state_dict(), "scaler": scaler.state_dict() if scaler is not None else None,
-            "rng": _rng_state(), "state": state,
-        }, last_path)
 
-    train_ds = ShardBatches(train_shards, cfg["batch_size"], whitening, shuffle=True, seed=seed, block_size=cfg["block_size"],
-                            window=cfg["shuffle_window"], drop_last=True, pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
+def _write_model(run: _Run, whitening, out_dir: Path) -> Path:
+    """``model.pt``: the best weights with everything needed to use them."""
+    cfg = run.cfg
+    best = torch.load(run.best_path, map_location="cpu", weights_only=True)
+    run.model.load_state_dict(best["model"])
+    model_path = out_dir / "model.pt"
+    _atomic_save({
+        "format": "subslope.nre/1",
+        "model": {k: v.cpu() for k, v in run.model.state_dict().items()},
+        "model_card": model_card(run.model),
+        "whitening": {"mean": whitening[0], "std": whitening[1]},
+        "gamma_norm": {"mean": float(run.model.gamma_mean), "std": float(run.model.gamma_std)},
+        "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
+        "config": cfg,
+        "config_hash": run.chash,
+        "history": run.state["history"],
+        "best_epoch": int(best["epoch"]),
+        "best_val_loss": float(best["val_loss"]),
+        "stop_reason": run.state["stop_reason"],
+        "torch_version": str(torch.__version__),
+    }, model_path)
+    return model_path
+
+
+def _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, last_path, best_path, device, amp_dtype):
+    run = _start(cfg, chash, train_shards, device, amp_dtype, last_path, best_path)
+    _resume(run, ckpt_dir)
+    state = run.state
+    train_ds = ShardBatches(train_shards, cfg["batch_size"], whitening, shuffle=True, seed=int(cfg["seed"]),
+                            block_size=cfg["block_size"], window=cfg["shuffle_window"], drop_last=True,
+                            pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
     val_ds = ShardBatches(val_shards, cfg["val_batch_size"] or cfg["batch_size"], whitening, shuffle=False,
                           pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
     if len(train_ds) == 0:
         raise ValueError(f"training shards hold {train_ds.n_images} images, fewer than one batch of {cfg['batch_size']}")
-    pin = device.type == "cuda"
     max_steps = cfg["max_steps"]
     if max_steps is not None and state["step"] >= max_steps and not state["finished"]:
         return _summary(state, None, finished=False)
-
-    model.train()
+    run.model.train()
     while not state["finished"]:
         if state["epoch"] >= cfg["max_epochs"]:
             state["finished"], state["stop_reason"] = True, "max_epochs"
             break
-        epoch = state["epoch"]
-        train_ds.set_epoch(epoch)
-        loader = make_loader(train_ds, start=state["batch_in_epoch"], num_workers=cfg["num_workers"], pin_memory=pin)
-        t0 = time.perf_counter()
-        bar = tqdm(loader, total=len(train_ds), initial=state["batch_in_epoch"], desc=f"epoch {epoch}",
-                   disable=not cfg["progress"], file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
-        for batch in bar:
-            x = batch["x"].to(device, non_blocking=pin)
-            g = batch["gamma"].to(device, non_blocking=pin)
-            ctx = torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext()
-            with ctx:
-                loss = loss_fn(g, x)
-            opt.zero_grad(set_to_none=True)
-            if scaler is not None:
-                scaler.scale(loss).backward()
-                scaler.step(opt)
-                scaler.update()
-            else:
-                loss.backward()
-                opt.step()
-            lv = float(loss.detach())
-            if not math.isfinite(lv):
-                raise FloatingPointError(f"training loss is {lv} at epoch {epoch}, step {state['step']}")
-            n = x.shape[0]
-            state["loss_sum"] += lv * n
-            state["loss_count"] += n
-            state["step"] += 1
-            state["batch_in_epoch"] += 1
-            if state["step"] % 20 == 0:
-                bar.set_postfix(loss=f"{state['loss_sum'] / state['loss_count']:.4f}", refresh=False)
-            stop = max_steps is not None and state["step"] >= max_steps
-            if stop or (cfg["checkpoint_every"] and state["step"] % cfg["checkpoint_every"] == 0):
-                state["train_seconds"] += time.perf_counter() - t0
-                t0 = time.perf_counter()
-                checkpoint()
-            if stop:
-                bar.close()
-                log.info("stopped at max_steps=%d (epoch %d, batch %d); call train() again to resume", max_steps, epoch, state["batch_in_epoch"])
-                return _summary(state, None, finished=False)
-        bar.close()
-        state["train_seconds"] += time.perf_counter() - t0
-        tv = time.perf_counter()
-        val = evaluate(model, val_ds, val_loss_fn, device, num_workers=cfg["num_workers"], amp_dtype=amp_dtype)
-        val_seconds = time.perf_counter() - tv
-        lr = opt.param_groups[0]["lr"]
-        sched.step(val)
-        row = {
-            "epoch": epoch, "train_loss": state["loss_sum"] / max(state["loss_count"], 1), "val_loss": val, "lr": lr,
-            "seconds": state["train_seconds"] + val_seconds,
-            "images_per_s": state["loss_count"] / max(state["train_seconds"], 1e-9),
-        }
-        state["history"].append(row)
-        log.info("epoch %d: train %.5f val %.5f lr %.2e (%.1f s, %.0f img/s)", epoch, row["train_loss"], val, lr, row["seconds"], row["images_per_s"])
-        if val < state["best_val"] - cfg["min_delta"]:
-            state["best_val"], state["bad_epochs"] = val, 0
-            _atomic_save({"model": model.state_dict(), "epoch": epoch, "val_loss": val}, best_path)
-        else:
-            state["bad_epochs"] += 1
-            if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
-                state["best_val"] = val
-                _atomic_save({"model": model.state_dict(), "epoch": epoch, "val_loss": val}, best_path)
-        state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
-        if state["bad_epochs"] >= cfg["early_stop_patience"]:
-            state["finished"], state["stop_reason"] = True, "early_stop"
-        elif state["epoch"] >= cfg["max_epochs"]:
-            state["finished"], state["stop_reason"] = True, "max_epochs"
-        checkpoint()
-        _write_log(state["history"], out_dir / "training_log.csv")
-
-    checkpoint()
-    best = torch.load(best_path, map_location="cpu", weights_only=True)
-    model.load_state_dict(best["model"])
-    model_path = out_dir / "model.pt"
-    _atomic_save({
-        "format": "subslope.nre/1",
-        "model": {k: v.cpu() for k, v in model.state_dict().items()},
-        "model_card": model_card(model),
-        "whitening": {"mean": whitening[0], "std": whitening[1]},
-        "gamma_norm": {"mean": float(model.gamma_mean), "std": float(model.gamma_std)},
-        "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
-        "config": cfg,
-        "config_hash": chash,
-        "history": state["history"],
-        "best_epoch": int(best["epoch"]),
-        "best_val_loss": float(best["val_loss"]),
-        "stop_reason": state["stop_reason"],
-        "torch_version": str(torch.__version__),
-    }, model_path)
+        if _train_epoch(run, train_ds, max_steps):
+            return _summary(state, None, finished=False)
+        _end_epoch(run, val_ds, out_dir)
+    run.checkpoint()
+    model_path = _write_model(run, whitening, out_dir)
     _write_log(state["history"], out_dir / "training_log.csv")
     return _summary(state, model_path, finished=True)
 

@@ -1,0 +1,3 @@
+"""The only version string of the package (read by pyproject.toml)."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,362 @@
+"""Result figures: the paper's figures 2–6 and the coverage check (docs/inference.md).
+
+Every function takes plain arrays (computed by :mod:`subslope.stats.intervals` and
+:mod:`subslope.stats.calibration`), builds a matplotlib :class:`~matplotlib.figure.Figure`
+without pyplot (so it works under any backend, Agg included, and touches no global
+state) and returns it; :func:`save` writes it as PDF and PNG atomically. Each figure
+names, in a footer, the run it came from (``run_name``) and optionally a ``source``
+string (e.g. the estimator file or config hash). docs/inference.md says how to read them.
+
+| function | paper | shows |
+|---|---|---|
+| :func:`validation_scatter` | Fig. 2 | single-image γ_MLE ± 68% vs true γ |
+| :func:`stack_scatter` | Fig. 3 | 13-image EPL stacks, γ_MLE ± 68% vs shared γ |
+| :func:`concentration_grid` | Fig. 4 | stack MLEs (median, 16–84%) vs concentration multiplier a |
+| :func:`hst_profiles` | Fig. 5 | t(γ) of individual HST systems with the single-image threshold |
+| :func:`hst_combined` | Fig. 6 | combined HST t(γ), its 68% interval, the a = 1 NFW/tNFW bands |
+| :func:`coverage_figure` | — | held-out coverage per N and expected-coverage curves |
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.figure import Figure
+from matplotlib.ticker import NullLocator
+
+from subslope.figures.save import footer
+from subslope.stats.intervals import Interval, test_statistic
+
+__all__ = [
+    "concentration_grid",
+    "coverage_figure",
+    "hst_combined",
+    "hst_profiles",
+    "stack_scatter",
+    "validation_scatter",
+]
+
+GAMMA_LABEL = r"$\gamma$"
+C_HST = "#c2185b"  # magenta: HST data
+C_NFW = "#1f77b4"  # blue: NFW
+C_TNFW = "#2ca02c"  # green: tNFW
+
+
+# ---------------------------------------------------------------------------------------
+# shared helpers
+# ---------------------------------------------------------------------------------------
+def _finish(fig: Figure, title: str | None = None) -> Figure:
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.035, 1, 0.95 if title else 1))
+    return fig
+
+
+def _arrays(*arrays, names):
+    out = [np.asarray(a, dtype=np.float64).ravel() for a in arrays]
+    n = out[0].size
+    for a, name in zip(out, names, strict=True):
+        if a.size != n:
+            raise ValueError(f"{name} must have {n} values like {names[0]}, got {a.size}")
+    if n == 0:
+        raise ValueError(f"{names[0]} is empty: nothing to plot")
+    return out
+
+
+def _interval_scatter(ax, gamma_true, mle, lo, hi, open_lower, open_upper, prior, color, label):
+    """γ_MLE with asymmetric 68% error bars vs true γ, with 1:1 line; returns the coverage."""
+    n = gamma_true.size
+    open_any = np.zeros(n, bool)
+    if open_lower is not None:
+        open_any |= np.asarray(open_lower, bool).ravel()
+    if open_upper is not None:
+        open_any |= np.asarray(open_upper, bool).ravel()
+    yerr = np.vstack([np.maximum(mle - lo, 0), np.maximum(hi - mle, 0)])
+    ax.plot(prior, prior, color="0.4", lw=1, ls="--", zorder=1, label="1:1")
+    closed = ~open_any
+    ax.errorbar(gamma_true[closed], mle[closed], yerr=yerr[:, closed], fmt="o", ms=3.5, color=color, ecolor=color,
+                elinewidth=0.8, capsize=1.5, alpha=0.85, label=label, zorder=3)
+    if open_any.any():
+        ax.errorbar(gamma_true[open_any], mle[open_any], yerr=yerr[:, open_any], fmt="o", ms=3.5, mfc="white",
+                    color="0.45", ecolor="0.6", elinewidth=0.8, capsize=1.5, zorder=2,
+                    label="interval open at a prior edge")
+    pad = 0.02 * (prior[1] - prior[0])
+    ax.set_xlim(prior[0] - pad, prior[1] + pad)
+    ax.set_ylim(prior[0] - pad, prior[1] + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel(r"true $\gamma$")
+    ax.set_ylabel(r"$\gamma_\mathrm{MLE}$ (68% interval)")
+    ax.grid(alpha=0.25)
+    covered = float(np.mean((lo <= gamma_true) & (gamma_true <= hi)))
+    ax.legend(loc="upper left", fontsize=7, frameon=False)
+    return covered
+
+
+def _scatter_figure(gamma_true, mle, lo, hi, *, run_name, source, gamma_range, open_lower, open_upper, prior,
+                    threshold, title, color, unit):
+    gamma_true, mle, lo, hi = _arrays(gamma_true, mle, lo, hi, names=("gamma_true", "mle", "lo", "hi"))
+    keep = np.ones(gamma_true.size, bool)
+    if gamma_range is not None:
+        keep = (gamma_true > gamma_range[0]) & (gamma_true < gamma_range[1])
+        if not keep.any():
+            raise ValueError(f"no point with {gamma_range[0]} < gamma_true < {gamma_range[1]}")
+    sel = [a[keep] for a in (gamma_true, mle, lo, hi)]
+    ol = None if open_lower is None else np.asarray(open_lower, bool).ravel()[keep]
+    ou = None if open_upper is None else np.asarray(open_upper, bool).ravel()[keep]
+    fig = Figure(figsize=(4.6, 4.9))
+    ax = fig.subplots()
+    cov = _interval_scatter(ax, *sel, ol, ou, prior, color, f"{keep.sum()} {unit}")
+    txt = f"{cov:.0%} of intervals contain the true $\\gamma$"
+    if threshold is not None:
+        txt += f"\nthreshold $\\tau$ = {threshold:.3g}"
+    ax.text(0.97, 0.03, txt, transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
+    extra = None if gamma_range is None else f"{gamma_range[0]} < true γ < {gamma_range[1]}"
+    footer(fig, run_name, source, extra)
+    return _finish(fig, title)
+
+
+# ---------------------------------------------------------------------------------------
+# Fig. 2 and 3
+# ---------------------------------------------------------------------------------------
+def validation_scatter(gamma_true, mle, lo, hi, *, run_name: str, source: str | None = None,
+                       gamma_range: tuple[float, float] | None = (1.2, 2.8), open_lower=None, open_upper=None,
+                       prior: tuple[float, float] = (1.1, 2.9), threshold: float | None = None) -> Figure:
+    """Fig. 2: single-image γ_MLE with its 68% interval ``[lo, hi]`` against the true γ.
+
+    Only images with ``gamma_range[0] < γ_true < gamma_range[1]`` are drawn (``None``:
+    all). Intervals flagged ``open_lower``/``open_upper`` (reaching a prior edge) are drawn
+    hollow and grey. The corner text gives the fraction of intervals containing γ_true.
+    """
+    return _scatter_figure(gamma_true, mle, lo, hi, run_name=run_name, source=source, gamma_range=gamma_range,
+                           open_lower=open_lower, open_upper=open_upper, prior=prior, threshold=threshold,
+                           title="Single images: maximum-likelihood slope vs truth", color="#444444", unit="images")
+
+
+def stack_scatter(gamma_true, mle, lo, hi, *, run_name: str, n_images: int = 13, source: str | None = None,
+                  gamma_range: tuple[float, float] | None = None, open_lower=None, open_upper=None,
+                  prior: tuple[float, float] = (1.1, 2.9), threshold: float | None = None) -> Figure:
+    """Fig. 3: γ_MLE ± 68% of stacks of ``n_images`` EPL images against their shared true γ."""
+    return _scatter_figure(gamma_true, mle, lo, hi, run_name=run_name, source=source, gamma_range=gamma_range,
+                           open_lower=open_lower, open_upper=open_upper, prior=prior, threshold=threshold,
+                           title=f"Stacks of {n_images} EPL images: maximum-likelihood slope vs truth", color=C_HST,
+                           unit=f"stacks of {n_images}")
+
+
+# ---------------------------------------------------------------------------------------
+# Fig. 4
+# ---------------------------------------------------------------------------------------
+def concentration_grid(multipliers, mles_nfw, mles_tnfw=None, *, run_name: str, source: str | None = None,
+                       n_images: int = 13, cdm: float = 1.0, hst: tuple[float, float, float] | None = None,
+                       percentiles: tuple[float, float, float] = (16, 50, 84)) -> Figure:
+    """Fig. 4: stack MLEs against the concentration multiplier ``a`` (log axis).
+
+    ``mles_nfw``/``mles_tnfw``: ``(n_a, n_sets)`` MLEs of the ``n_sets`` stacks of
+    ``n_images`` at each multiplier (NaN entries are ignored). Points: median; bars: the
+    16–84% range of the stack MLEs (the spread of the measurement from one set of 13
+    lenses to another). ``a = cdm`` (1) is marked as the CDM prediction. ``hst``:
+    optional ``(mle, lo, hi)`` of the real stack, drawn as a horizontal band.
+    """
+    a = np.asarray(multipliers, dtype=np.float64).ravel()
+    if a.size == 0 or np.any(a <= 0):
+        raise ValueError("multipliers must be a non-empty array of positive values (log axis)")
+    fig = Figure(figsize=(5.6, 4.8))
+    ax = fig.subplots()
+    series = [("NFW subhalos", mles_nfw, C_NFW, "o", 1 / 1.03)]
+    if mles_tnfw is not None:
+        series.append(("tNFW subhalos", mles_tnfw, C_TNFW, "s", 1.03))
+    for label, m, color, marker, shift in series:
+        m = np.asarray(m, dtype=np.float64)
+        if m.ndim != 2 or m.shape[0] != a.size:
+            raise ValueError(f"{label}: MLEs must have shape (n_a={a.size}, n_sets), got {m.shape}")
+        lo, med, hi = np.nanpercentile(m, percentiles, axis=1)
+        ax.errorbar(a * shift, med, yerr=[med - lo, hi - med], fmt=marker, color=color, ms=5, capsize=2.5,
+                    label=f"{label} (median, {percentiles[0]:g}–{percentiles[2]:g}% of {m.shape[1]} stacks)")
+    if hst is not None:
+        h_mle, h_lo, h_hi = hst
+        ax.axhspan(h_lo, h_hi, color=C_HST, alpha=0.15, lw=0)
+        ax.axhline(h_mle, color=C_HST, lw=1, label=f"HST stack: {h_mle:.2f} (68%)")
+    ax.axvline(cdm, color="0.3", ls=":", lw=1.2)
+    ax.text(cdm, 0.02, f" CDM prediction ($a$ = {cdm:g})", transform=ax.get_xaxis_transform(), ha="left",
+            va="bottom", fontsize=8, color="0.2")
+    ax.set_xscale("log")
+    ax.set_xticks(a, [f"{v:g}" for v in a])
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.set_xlim(a.min() / 1.25, a.max() * 1.25)
+    ax.set_xlabel(r"concentration multiplier $a$ ($c_{200} = a\,c_\mathrm{CDM}$)")
+    ax.set_ylabel(rf"stack $\gamma_\mathrm{{MLE}}$ ({n_images} images)")
+    ax.grid(alpha=0.25)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), fontsize=7, frameon=False)
+    footer(fig, run_name, source)
+    return _finish(fig, f"Slope measured on {n_images}-image stacks of (t)NFW subhalo simulations")
+
+
+# ---------------------------------------------------------------------------------------
+# Fig. 5 and 6
+# ---------------------------------------------------------------------------------------
+def _to_t(profile, gammas, kind):
+    if kind == "t":
+        return np.asarray(profile, dtype=np.float64)
+    if kind == "log_ratio":
+        return test_statistic(profile, gammas)
+    raise ValueError(f"kind must be 't' or 'log_ratio', got {kind!r}")
+
+
+def _draw_bands(ax, bands):
+    for label, (lo, hi), color in bands:
+        ax.axvspan(lo, hi, color=color, alpha=0.18, lw=0, label=label)
+
+
+def hst_profiles(gammas, profiles: Mapping[str, np.ndarray], threshold: float, *, run_name: str,
+                 source: str | None = None, kind: str = "t", wilks: float | None = None,
+                 highlight: Sequence[str] = ("SDSSJ0946+1006",), ymax: float | None = None) -> Figure:
+    """Fig. 5: test-statistic profiles t(γ) of individual HST systems.
+
+    ``profiles``: system name → ``t(γ)`` (``kind='t'``) or ``ln r̂(γ)`` (``kind='log_ratio'``,
+    converted with :func:`subslope.stats.intervals.test_statistic`). The horizontal line is the
+    single-image threshold τ₁ (a system's 68% interval is where its curve lies below it);
+    ``wilks`` adds the χ²₁ value for comparison. Systems named in ``highlight`` are drawn
+    thicker.
+    """
+    g = np.asarray(gammas, dtype=np.float64)
+    if not profiles:
+        raise ValueError("hst_profiles: no profiles to plot")
+    ts = {name: _to_t(p, g, kind) for name, p in profiles.items()}
+    fig = Figure(figsize=(6.4, 4.4))
+    ax = fig.subplots()
+    cmap = colormaps["tab10" if len(ts) <= 10 else "tab20"]
+    for k, (name, t) in enumerate(ts.items()):
+        hl = name in highlight
+        ax.plot(g, t, color=cmap(k % cmap.N), lw=2.4 if hl else 1.1, label=name + (" ★" if hl else ""),
+                zorder=3 if hl else 2)
+    ax.axhline(threshold, color="k", ls="--", lw=1, label=rf"68% threshold $\tau_1$ = {threshold:.3g}")
+    if wilks is not None:
+        ax.axhline(wilks, color="0.5", ls=":", lw=1, label=rf"Wilks $\chi^2_1$: {wilks:.3g}")
+    top = ymax if ymax is not None else max(3 * threshold, min(max(float(t.max()) for t in ts.values()), 12 * threshold))
+    ax.set_ylim(0, top * 1.03)
+    ax.set_xlim(g[0], g[-1])
+    ax.set_xlabel(GAMMA_LABEL)
+    ax.set_ylabel(r"$t(\gamma) = 2\,[\ln\hat r(\gamma_\mathrm{MLE}) - \ln\hat r(\gamma)]$")
+    ax.grid(alpha=0.25)
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, frameon=False)
+    footer(fig, run_name, source)
+    return _finish(fig, "Test-statistic profiles of individual HST lenses")
+
+
+def hst_combined(gammas, t_combined, tau_13: float, band_nfw: tuple[float, float] | None,
+                 band_tnfw: tuple[float, float] | None, mle: float | None = None,
+                 interval: Interval | tuple[float, float] | None = None, *, run_name: str, source: str | None = None,
+                 kind: str = "t", n_images: int = 13, ymax: float | None = None) -> Figure:
+    """Fig. 6: the combined HST profile with its calibrated 68% interval and the CDM bands.
+
+    ``t_combined``: t(γ) (or ``ln r̂`` with ``kind='log_ratio'``) of the stack of all HST
+    images; ``tau_13``: the calibrated threshold for that N; ``interval``: an
+    :class:`~subslope.stats.intervals.Interval` (edge/multimodal flags are stated in the
+    annotation) or ``(lo, hi)``; ``band_nfw``/``band_tnfw``: ``(lo, hi)`` 68% ranges
+    (16–84%) of the a = 1 NFW/tNFW stack MLEs (Fig. 4 at a = 1), shaded.
+    """
+    g = np.asarray(gammas, dtype=np.float64)
+    t = _to_t(t_combined, g, kind)
+    if t.shape != g.shape:
+        raise ValueError(f"t_combined must have the grid's shape {g.shape}, got {t.shape}")
+    note = ""
+    if isinstance(interval, Interval):
+        lo, hi = interval.lower, interval.upper
+        mle = interval.mle if mle is None else mle
+        if interval.multimodal:
+            note += f"; hull of {len(interval.regions)} regions"
+        if interval.lower_at_edge or interval.upper_at_edge:
+            note += "; open at the prior edge"
+    elif interval is not None:
+        lo, hi = map(float, interval)
+    else:
+        lo = hi = None
+    if mle is None:
+        mle = float(g[np.argmin(t)])
+    fig = Figure(figsize=(5.8, 4.3))
+    ax = fig.subplots()
+    bands = []
+    if band_nfw is not None:
+        bands.append(("CDM NFW subhalos, $a$ = 1 (68%)", band_nfw, C_NFW))
+    if band_tnfw is not None:
+        bands.append(("CDM tNFW subhalos, $a$ = 1 (68%)", band_tnfw, C_TNFW))
+    _draw_bands(ax, bands)
+    ax.plot(g, t, color=C_HST, lw=2, label=f"HST, {n_images} lenses combined")
+    ax.axhline(tau_13, color="k", ls="--", lw=1, label=rf"calibrated 68% threshold $\tau_{{{n_images}}}$ = {tau_13:.3g}")
+    if lo is not None:
+        for v in (lo, hi):
+            ax.axvline(v, color=C_HST, ls=":", lw=1.2)
+        txt = (rf"$\gamma_\mathrm{{MLE}} = {mle:.2f}^{{+{hi - mle:.2f}}}_{{-{mle - lo:.2f}}}$" + note)
+        ax.text(0.03, 0.97, txt, transform=ax.transAxes, ha="left", va="top", fontsize=9, color=C_HST)
+    top = ymax if ymax is not None else max(4 * tau_13, min(float(t.max()), 12 * tau_13))
+    ax.set_ylim(0, top * 1.03)
+    ax.set_xlim(g[0], g[-1])
+    ax.set_xlabel(GAMMA_LABEL)
+    ax.set_ylabel(r"$t(\gamma)$ of the combined profile")
+    ax.grid(alpha=0.25)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=7, frameon=False)
+    footer(fig, run_name, source)
+    return _finish(fig, "Subhalo slope of the combined HST lenses vs CDM")
+
+
+# ---------------------------------------------------------------------------------------
+# coverage
+# ---------------------------------------------------------------------------------------
+def coverage_figure(table, levels, coverages_empirical, coverages_wilks=None, *, run_name: str,
+                    source: str | None = None) -> Figure:
+    """Calibration check: held-out coverage per stack size, and expected-coverage curves.
+
+    Left: observed coverage at the table's level (0.68) for each N with its binomial
+    error bar, with the empirical thresholds τ_N (filled) and with Wilks' χ²₁ threshold
+    (hollow); the target is the horizontal line. Right: coverage against credibility
+    level (``levels``); ``coverages_empirical``/``coverages_wilks`` are one curve ``(L,)``
+    or a mapping ``N → (L,)``. A calibrated procedure follows the diagonal; below it
+    means over-confident intervals.
+    """
+    needed = {"n_images", "coverage", "coverage_err", "coverage_wilks", "coverage_wilks_err", "n_heldout"}
+    missing = needed - set(table.columns)
+    if missing:
+        raise ValueError(f"coverage_figure: table lacks column(s) {sorted(missing)}")
+    level = float(table["level"].iloc[0]) if "level" in table.columns else 0.68
+    lv = np.asarray(levels, dtype=np.float64)
+    fig = Figure(figsize=(9.0, 4.2))
+    ax1, ax2 = fig.subplots(1, 2)
+    n = table["n_images"].to_numpy()
+    ax1.axhline(level, color="0.4", ls="--", lw=1, label=f"target {level:.0%}")
+    ax1.errorbar(n - 0.08, table["coverage"], yerr=table["coverage_err"], fmt="o", color=C_HST, capsize=2.5,
+                 label=r"calibrated $\tau_N$")
+    ax1.errorbar(n + 0.08, table["coverage_wilks"], yerr=table["coverage_wilks_err"], fmt="o", mfc="white",
+                 color="0.35", capsize=2.5, label=r"Wilks $\chi^2_1$")
+    for ni, nh in zip(n, table["n_heldout"], strict=True):
+        ax1.annotate(f"{nh}", (ni, 0.02), xycoords=("data", "axes fraction"), ha="center", fontsize=6, color="0.4")
+    ax1.set_xticks(n)
+    ax1.set_xlabel("images per stack $N$ (numbers: held-out stacks)")
+    ax1.set_ylabel(f"held-out coverage of the {level:.0%} interval")
+    span = max(0.12, float(np.nanmax(np.abs(np.r_[table["coverage"], table["coverage_wilks"]] - level))) + 0.05)
+    ax1.set_ylim(max(0, level - span), min(1, level + span))
+    ax1.grid(alpha=0.25)
+    ax1.legend(fontsize=7, frameon=False, loc="upper right")
+
+    ax2.plot([0, 1], [0, 1], color="0.4", ls="--", lw=1, label="ideal")
+    emp = coverages_empirical if isinstance(coverages_empirical, Mapping) else {None: coverages_empirical}
+    wil = (coverages_wilks if isinstance(coverages_wilks, Mapping) else {None: coverages_wilks}) \
+        if coverages_wilks is not None else {}
+    cmap = colormaps["viridis"]
+    keys = list(emp)
+    for i, key in enumerate(keys):
+        color = C_HST if key is None else cmap(i / max(len(keys) - 1, 1) * 0.85)
+        suffix = "" if key is None else f", N={key}"
+        ax2.plot(lv, np.asarray(emp[key]), color=color, lw=1.6, label="calibrated" + suffix)
+        if key in wil:
+            ax2.plot(lv, np.asarray(wil[key]), color=color, lw=1.0, ls=":", label="Wilks" + suffix)
+    ax2.axvline(level, color="0.7", lw=0.8)
+    ax2.set_xlim(0, 1)
+    ax2.set_ylim(0, 1)
+    ax2.set_aspect("equal")
+    ax2.set_xlabel("credibility level")
+    ax2.set_ylabel("held-out coverage")
+    ax2.grid(alpha=0.25)
+    ax2.legend(fontsize=6.5, frameon=False, loc="upper left")
+    footer(fig, run_name, source)
+    return _finish(fig, "Calibration of the test-statistic threshold on held-out stacks")

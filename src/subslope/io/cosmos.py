@@ -1,0 +1,249 @@
+"""Real COSMOS galaxies as lensed sources (GalSim "real galaxy" catalogue format).
+
+The catalogue is the pair of FITS tables of the GalSim COSMOS download
+(``real_galaxy_catalog_23.5.fits`` with ``IDENT, MAG, PIXEL_SCALE, GAL_FILENAME,
+GAL_HDU, ...`` and ``real_galaxy_catalog_23.5_fits.fits`` with ``IDENT, mag_auto,
+flux_radius, zphot, ...``) plus the image files they name. The same code reads the
+10-galaxy sample of ``shared/data/cosmos`` and the full 2.3-GB catalogue.
+
+Stamps are F814W images in e⁻/s per 0.03″ pixel at the COSMOS zero point 25.95.
+:func:`place_at_redshift` turns one into a surface-brightness map at the HST zero point
+of our images, resized for the new source redshift, following the recipe of the
+reference analysis (docs/simulation.md; the ``paltas`` ``GalaxyCatalog.draw_source`` steps):
+
+1. divide by the pixel area (e⁻/s per pixel → e⁻/s per arcsec²);
+2. multiply by 10^((zp_out − zp_cosmos)/2.5) (zero points 25.127 and 25.95);
+3. shrink the pixel size by D_A(z_phot)/D_A(z_source);
+4. k-correct by 10^(−(K(z_source) − K(z_phot))/2.5) with K(z) = 2.5 ln(1 + z)
+   (flat f_λ spectrum, same band).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from subslope.physics.instrument import ZERO_POINT
+import pandas as pd
+from astropy.cosmology import Planck18
+from astropy.io import fits
+
+COSMOS_ZERO_POINT = 25.95
+"""Mean AB zero point of the COSMOS F814W stamps (e⁻/s ↔ magnitude)."""
+
+CATALOG_FILE = "real_galaxy_catalog_23.5.fits"
+FITS_FILE = "real_galaxy_catalog_23.5_fits.fits"
+
+SPLITS = ("train", "validation", "test")
+
+
+class CosmosError(ValueError):
+    """A COSMOS catalogue, stamp or selection that cannot be used."""
+
+
+@dataclass(frozen=True)
+class CosmosCuts:
+    """Selection of usable galaxies. ``None`` switches a cut off.
+
+    The reference analysis used mag_auto < 20, a stamp side ≥ 64 pixels, a flux radius
+    > 10 pixels and zphot < 1.0 (2,262 galaxies of the full catalogue pass).
+    """
+
+    mag_max: float | None = 20.0
+    min_stamp_side: int | None = 64
+    min_flux_radius: float | None = 10.0
+    zphot_max: float | None = 1.0
+    exclude: tuple[int, ...] = field(default_factory=tuple)
+
+
+@dataclass
+class CosmosCatalog:
+    """The joined catalogue of one COSMOS folder, one row per galaxy.
+
+    ``table`` columns: ``ident, mag_auto, flux_radius`` (pixels), ``zphot``,
+    ``pixel_scale`` (arcsec), ``gal_filename, gal_hdu, nx, ny`` (stamp shape).
+    """
+
+    folder: Path
+    table: pd.DataFrame
+
+    @classmethod
+    def load(cls, folder: str | Path, catalog_file: str = CATALOG_FILE,
+             fits_file: str = FITS_FILE) -> "CosmosCatalog":
+        folder = Path(folder)
+        paths = [folder / catalog_file, folder / fits_file]
+        for path in paths:
+            if not path.is_file():
+                raise CosmosError(f"COSMOS catalogue file not found: {path}")
+        main = _read_table(paths[0], ["IDENT", "PIXEL_SCALE", "GAL_FILENAME", "GAL_HDU"])
+        fit = _read_table(paths[1], ["IDENT", "mag_auto", "flux_radius", "zphot"])
+        if len(main) != len(fit) or not np.array_equal(main["IDENT"], fit["IDENT"]):
+            raise CosmosError(
+                f"{paths[0].name} and {paths[1].name} do not list the same galaxies in the "
+                "same order (IDENT columns differ)")
+        table = pd.DataFrame({
+            "ident": main["IDENT"].astype(np.int64),
+            "mag_auto": fit["mag_auto"].astype(np.float64),
+            "flux_radius": fit["flux_radius"].astype(np.float64),
+            "zphot": fit["zphot"].astype(np.float64),
+            "pixel_scale": main["PIXEL_SCALE"].astype(np.float64),
+            "gal_filename": [str(s).strip() for s in main["GAL_FILENAME"]],
+            "gal_hdu": main["GAL_HDU"].astype(np.int64),
+        })
+        if table["ident"].duplicated().any():
+            dup = table.loc[table["ident"].duplicated(), "ident"].tolist()[:5]
+            raise CosmosError(f"duplicate IDENT values in {paths[0].name}: {dup}")
+        shapes = [_stamp_shape(folder / f, h) for f, h in zip(table["gal_filename"], table["gal_hdu"])]
+        table["ny"] = [s[0] for s in shapes]
+        table["nx"] = [s[1] for s in shapes]
+        return cls(folder=folder, table=table)
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    @property
+    def idents(self) -> np.ndarray:
+        return self.table["ident"].to_numpy()
+
+    def select(self, cuts: CosmosCuts) -> "CosmosCatalog":
+        """Galaxies passing ``cuts``; raises if none is left."""
+        t = self.table
+        ok = np.ones(len(t), dtype=bool)
+        if cuts.mag_max is not None:
+            ok &= t["mag_auto"].to_numpy() < cuts.mag_max
+        if cuts.min_stamp_side is not None:
+            ok &= np.minimum(t["nx"], t["ny"]).to_numpy() >= cuts.min_stamp_side
+        if cuts.min_flux_radius is not None:
+            ok &= t["flux_radius"].to_numpy() > cuts.min_flux_radius
+        if cuts.zphot_max is not None:
+            ok &= t["zphot"].to_numpy() < cuts.zphot_max
+        if cuts.exclude:
+            ok &= ~np.isin(t["ident"].to_numpy(), np.asarray(cuts.exclude))
+        if not ok.any():
+            raise CosmosError(
+                f"no COSMOS galaxy in {self.folder} passes the cuts {cuts} "
+                f"(catalogue of {len(t)}: mag_auto {t['mag_auto'].min():.2f}–{t['mag_auto'].max():.2f}, "
+                f"flux_radius {t['flux_radius'].min():.1f}–{t['flux_radius'].max():.1f} px, "
+                f"min stamp side {int(np.minimum(t['nx'], t['ny']).min())}–{int(np.minimum(t['nx'], t['ny']).max())} px)")
+        return CosmosCatalog(folder=self.folder, table=t.loc[ok].reset_index(drop=True))
+
+    def subset(self, idents) -> "CosmosCatalog":
+        """The galaxies with the given IDENTs, in that order."""
+        idents = np.asarray(idents, dtype=np.int64)
+        index = pd.Index(self.table["ident"])
+        missing = idents[~np.isin(idents, index)]
+        if missing.size:
+            raise CosmosError(f"IDENT(s) {missing.tolist()} not in the COSMOS catalogue at {self.folder}")
+        return CosmosCatalog(folder=self.folder,
+                             table=self.table.iloc[index.get_indexer(idents)].reset_index(drop=True))
+
+    def stamp(self, ident: int) -> np.ndarray:
+        """The stamp of galaxy ``ident`` (float64, e⁻/s per pixel, COSMOS zero point)."""
+        rows = self.table.index[self.table["ident"] == int(ident)]
+        if len(rows) == 0:
+            raise CosmosError(f"IDENT {ident} not in the COSMOS catalogue at {self.folder}")
+        row = self.table.loc[rows[0]]
+        return _read_stamp(str(self.folder / row["gal_filename"]), int(row["gal_hdu"])).copy()
+
+
+def split_idents(idents, fractions: dict[str, float], salt: str = "subslope") -> dict[str, np.ndarray]:
+    """Deterministic split of galaxy IDENTs into train/validation/test.
+
+    Galaxies are ordered by a SHA-256 hash of ``salt:ident`` (independent of catalogue
+    order and of numpy's RNG) and cut into consecutive blocks whose sizes follow
+    ``fractions``; every split with a positive fraction gets at least one galaxy.
+    The same IDENTs, fractions and salt always give the same split.
+    """
+    idents = np.unique(np.asarray(idents, dtype=np.int64))
+    unknown = set(fractions) - set(SPLITS)
+    if unknown:
+        raise CosmosError(f"unknown split name(s) {sorted(unknown)}; allowed: {list(SPLITS)}")
+    frac = np.array([float(fractions.get(s, 0.0)) for s in SPLITS])
+    if np.any(frac < 0) or not np.isclose(frac.sum(), 1.0):
+        raise CosmosError(f"split fractions must be ≥ 0 and sum to 1, got {dict(fractions)}")
+    needed = int((frac > 0).sum())
+    if len(idents) < needed:
+        raise CosmosError(
+            f"{len(idents)} galaxies cannot fill {needed} non-empty splits {dict(fractions)}")
+    keys = [hashlib.sha256(f"{salt}:{i}".encode()).hexdigest() for i in idents]
+    ordered = idents[np.argsort(keys, kind="stable")]
+    counts = np.floor(frac * len(idents)).astype(int)
+    counts[(frac > 0) & (counts == 0)] = 1
+    # hand out the rounding remainder (or take back the minimum-one excess) via the largest split
+    counts[int(np.argmax(frac))] += len(idents) - counts.sum()
+    edges = np.concatenate([[0], np.cumsum(counts)])
+    return {s: np.sort(ordered[edges[k]:edges[k + 1]]) for k, s in enumerate(SPLITS)}
+
+
+def k_correction(z):
+    """K(z) = 2.5 ln(1 + z) mag: flat f_λ spectrum observed in the same band."""
+    return 2.5 * np.log1p(np.asarray(z, dtype=np.float64))
+
+
+def place_at_redshift(stamp: np.ndarray, pixel_scale: float, z_phot: float, z_source: float, *,
+                      zero_point_in: float = COSMOS_ZERO_POINT, zero_point_out: float = ZERO_POINT,
+                      cosmo=Planck18) -> tuple[np.ndarray, float]:
+    """Move a COSMOS stamp from z_phot to z_source (docs/simulation.md).
+
+    Parameters
+    ----------
+    stamp : e⁻/s per pixel at ``zero_point_in``.
+    pixel_scale : stamp pixel size in arcsec (0.03 for COSMOS).
+
+    Returns
+    -------
+    (surface_brightness, new_pixel_scale): e⁻/s per arcsec² at ``zero_point_out`` and
+    the pixel size in arcsec at z_source.
+    """
+    if not (z_phot > 0 and z_source > 0):
+        raise CosmosError(f"redshifts must be > 0, got z_phot={z_phot}, z_source={z_source}")
+    if not pixel_scale > 0:
+        raise CosmosError(f"pixel_scale must be > 0 arcsec, got {pixel_scale}")
+    sb = np.asarray(stamp, dtype=np.float64) / pixel_scale**2
+    sb = sb * 10 ** ((zero_point_out - zero_point_in) / 2.5)
+    sb = sb * 10 ** (-(k_correction(z_source) - k_correction(z_phot)) / 2.5)
+    ratio = (cosmo.angular_diameter_distance(z_phot) / cosmo.angular_diameter_distance(z_source)).value
+    return sb, float(pixel_scale * ratio)
+
+
+def normalize_to_magnitude(surface_brightness: np.ndarray, pixel_scale: float, magnitude: float,
+                           zero_point: float = ZERO_POINT) -> np.ndarray:
+    """Rescale a surface-brightness map so its total flux has apparent ``magnitude``."""
+    total = float(np.sum(surface_brightness)) * pixel_scale**2
+    if not total > 0:
+        raise CosmosError(f"cannot normalise a source with total flux {total} ≤ 0")
+    return surface_brightness * (10 ** (-0.4 * (magnitude - zero_point)) / total)
+
+
+def _read_table(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
+    with fits.open(path) as hdul:
+        if len(hdul) < 2 or not isinstance(hdul[1], fits.BinTableHDU):
+            raise CosmosError(f"{path} has no binary table in HDU 1")
+        data = hdul[1].data
+        missing = [c for c in columns if c not in data.columns.names]
+        if missing:
+            raise CosmosError(f"{path} lacks column(s) {missing}")
+        return {c: np.array(data[c]) for c in columns}
+
+
+def _stamp_shape(path: Path, hdu: int) -> tuple[int, int]:
+    if not path.is_file():
+        raise CosmosError(f"COSMOS image file not found: {path}")
+    with fits.open(path) as hdul:
+        if hdu >= len(hdul):
+            raise CosmosError(f"{path} has {len(hdul)} HDUs, catalogue asks for HDU {hdu}")
+        header = hdul[hdu].header
+        return int(header["NAXIS2"]), int(header["NAXIS1"])
+
+
+@lru_cache(maxsize=4096)
+def _read_stamp(path: str, hdu: int) -> np.ndarray:
+    with fits.open(path) as hdul:
+        data = np.asarray(hdul[hdu].data, dtype=np.float64)
+    if data.ndim != 2 or not np.all(np.isfinite(data)):
+        raise CosmosError(f"{path}[{hdu}] is not a finite 2-D image")
+    data.setflags(write=False)
+    return data

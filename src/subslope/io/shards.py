@@ -1,0 +1,311 @@
+"""Self-describing HDF5 shards of simulated images.
+
+A *shard* is one HDF5 file holding ``N`` simulated images and everything needed to
+reproduce them (layout version :data:`FORMAT_VERSION`)::
+
+    images                  (N, H, W) float32, chunked per image, gzip + shuffle
+    params/<name>           (N,) per-image (macro) parameters of subslope.simulation.macro.sample_macro:
+                            float64 or int64; always theta_e, lens_x, lens_y, set_index,
+                            plus gamma_sub (the label γ) in labelled scenes and
+                            c_multiplier in CDM scenes
+    params/noise_seed       (N,) uint64, torch seed of each image's noise
+    sources/<field>         (N,) per image, COSMOS scenes: ident, z_phot, pixel_scale
+                            (arcsec, at z_source), [mag]
+    subhalos/<field>        flat arrays of all subhalos, image by image
+    subhalos/counts         (N,) int64 subhalos per image
+    los/<field>, los/counts the same for line-of-sight halos
+    psf                     (k, k) float64 PSF kernel used for the convolution
+
+File attributes: ``format`` (:data:`FORMAT_NAME`), ``format_version``, ``scene``,
+``scene_spec`` (JSON of the resolved scene), ``config_hash`` (SHA-256 of the canonical
+JSON of the config sections that affect the images), ``config`` (JSON of those
+sections), ``seed_entropy`` and ``seed_spawn_key`` (the numpy SeedSequence of the
+shard), ``package_version``, ``n_images``, ``render_settings`` (JSON),
+``subhalo_profile`` / ``los_profile`` and, written last, ``complete = True``.
+
+Writing is atomic: the file is built as ``<path>.tmp-<pid>`` and renamed with
+:func:`os.replace`; an existing shard is never overwritten unless asked. No time stamps
+are stored (``track_times=False``), so the same inputs give a byte-identical file.
+:func:`open_shard` checks format, version, completeness and the required datasets and
+raises :class:`ShardError` naming the file otherwise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from subslope.config import canonical_json, config_hash
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "REQUIRED_DATASETS",
+    "ShardError",
+    "Shard",
+    "write_shard",
+    "open_shard",
+    "canonical_json",
+    "config_hash",
+    "file_sha256",
+]
+
+FORMAT_NAME = "subslope-shard"
+FORMAT_VERSION = 1
+
+#: Datasets every shard has (the estimator relies on these names).
+REQUIRED_DATASETS = (
+    "images",
+    "params/theta_e",
+    "params/lens_x",
+    "params/lens_y",
+    "params/set_index",
+    "params/noise_seed",
+    "subhalos/counts",
+    "los/counts",
+    "psf",
+)
+
+
+class ShardError(ValueError):
+    """A shard file is missing, partial, corrupt or not a subslope shard."""
+
+
+def file_sha256(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(chunk), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _attr_value(value: Any) -> Any:
+    if isinstance(value, (dict, list, tuple)):
+        return canonical_json(value)
+    if value is None:
+        return "null"
+    return value
+
+
+def _dataset(group: h5py.Group, name: str, data: np.ndarray, **kwargs) -> None:
+    data = np.asarray(data)
+    if data.dtype.kind == "f":
+        data = data.astype(np.float64)
+    elif data.dtype.kind in "iu" and data.dtype not in (np.uint64,):
+        data = data.astype(np.int64)
+    elif data.dtype.kind == "b":
+        data = data.astype(np.int8)
+    group.create_dataset(name, data=data, track_times=False, **kwargs)
+
+
+def write_shard(
+    path: str | os.PathLike[str],
+    *,
+    images: np.ndarray,
+    params: Mapping[str, np.ndarray],
+    psf: np.ndarray,
+    subhalos: Mapping[str, np.ndarray],
+    los: Mapping[str, np.ndarray],
+    sources: Mapping[str, np.ndarray] | None = None,
+    attrs: Mapping[str, Any],
+    overwrite: bool = False,
+    compression: str | None = "gzip",
+) -> Path:
+    """Write one shard atomically and return its path.
+
+    Parameters
+    ----------
+    images : (N, H, W) array, stored as float32.
+    params : per-image arrays of length N; must include the names of
+        :data:`REQUIRED_DATASETS` under ``params/``.
+    psf : 2-D PSF kernel.
+    subhalos, los : flat arrays plus ``counts`` (N,); keys become ``<group>/<key>``.
+    sources : per-image source arrays (COSMOS scenes) or None.
+    attrs : file attributes (dicts/lists are stored as canonical JSON strings); the
+        format attributes, ``n_images`` and ``complete`` are added here.
+    overwrite : replace an existing file (default: refuse with :class:`FileExistsError`).
+    compression : 'gzip' (level 4, with shuffle), 'lzf' or None.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"shard {path} already exists; delete it or pass overwrite=True")
+    images = np.asarray(images, dtype=np.float32)
+    if images.ndim != 3:
+        raise ShardError(f"{path}: images must have shape (N, H, W), got {images.shape}")
+    n, h, w = images.shape
+    for group, arrays, per_image in (("params", params, True), ("sources", sources or {}, True)):
+        for key, value in arrays.items():
+            if per_image and np.shape(value) != (n,):
+                raise ShardError(f"{path}: {group}/{key} has shape {np.shape(value)}, expected ({n},)")
+    for group, arrays in (("subhalos", subhalos), ("los", los)):
+        counts = np.asarray(arrays.get("counts"))
+        if counts.shape != (n,):
+            raise ShardError(f"{path}: {group}/counts must have shape ({n},), got {counts.shape}")
+        total = int(counts.sum())
+        for key, value in arrays.items():
+            if key != "counts" and np.shape(value) != (total,):
+                raise ShardError(f"{path}: {group}/{key} has {np.shape(value)} entries, counts sum to {total}")
+    missing = [d for d in REQUIRED_DATASETS if d.startswith("params/") and d.split("/")[1] not in params]
+    if missing:
+        raise ShardError(f"{path}: missing required parameter(s) {missing}")
+
+    comp: dict[str, Any] = {}
+    if compression == "gzip":
+        comp = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+    elif compression == "lzf":
+        comp = {"compression": "lzf", "shuffle": True}
+    elif compression is not None:
+        raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w", track_order=False) as f:
+            chunks = (1, h, w) if n else None
+            f.create_dataset("images", data=images, chunks=chunks, track_times=False, **(comp if n else {}))
+            _dataset(f, "psf", np.asarray(psf, dtype=np.float64))
+            for group, arrays in (("params", params), ("sources", sources or {}), ("subhalos", subhalos), ("los", los)):
+                g = f.create_group(group, track_order=False)
+                for key in sorted(arrays):
+                    _dataset(g, key, arrays[key])
+            meta = dict(attrs)
+            meta.update(format=FORMAT_NAME, format_version=FORMAT_VERSION, n_images=n)
+            for key in sorted(meta):
+                f.attrs[key] = _attr_value(meta[key])
+            f.attrs["complete"] = True  # last: marks a finished file
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+class Shard:
+    """A validated, read-only shard. Use as a context manager or call :meth:`close`.
+
+    ``attrs`` holds the file attributes with JSON strings decoded; ``params``,
+    ``sources``, ``subhalos``, ``los`` are dicts of numpy arrays (read on first use).
+    """
+
+    def __init__(self, path: Path, handle: h5py.File):
+        self.path = path
+        self.file = handle
+        self.attrs = {k: _decode(v) for k, v in handle.attrs.items()}
+        self._cache: dict[str, dict[str, np.ndarray]] = {}
+
+    def __enter__(self) -> Shard:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.file.close()
+
+    def __len__(self) -> int:
+        return int(self.attrs["n_images"])
+
+    @property
+    def images(self) -> h5py.Dataset:
+        """The ``images`` dataset (N, H, W) float32 (read slices of it)."""
+        return self.file["images"]
+
+    @property
+    def psf(self) -> np.ndarray:
+        return self.file["psf"][()]
+
+    def group(self, name: str) -> dict[str, np.ndarray]:
+        if name not in self._cache:
+            g = self.file.get(name)
+            self._cache[name] = {} if g is None else {k: g[k][()] for k in g}
+        return self._cache[name]
+
+    @property
+    def params(self) -> dict[str, np.ndarray]:
+        return self.group("params")
+
+    @property
+    def sources(self) -> dict[str, np.ndarray]:
+        return self.group("sources")
+
+    @property
+    def subhalos(self) -> dict[str, np.ndarray]:
+        return self.group("subhalos")
+
+    @property
+    def los(self) -> dict[str, np.ndarray]:
+        return self.group("los")
+
+    def ragged(self, name: str, index) -> dict[str, np.ndarray]:
+        """Arrays of group ``subhalos`` or ``los`` restricted to images ``index``
+        (an int, a slice or an index array); ``counts`` per selected image."""
+        arrays = self.group(name)
+        counts = arrays["counts"]
+        off = np.concatenate([[0], np.cumsum(counts)])
+        sel = np.atleast_1d(np.arange(counts.size)[index])
+        pick = np.concatenate([np.arange(off[i], off[i + 1]) for i in sel]) if sel.size else np.zeros(0, np.int64)
+        out = {k: v[pick] for k, v in arrays.items() if k != "counts"}
+        out["counts"] = counts[sel]
+        return out
+
+
+def _decode(value: Any) -> Any:
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, str) and (value[:1] in ("{", "[") or value == "null"):
+        try:
+            return json.loads(value)
+        except (TypeError, json.JSONDecodeError):
+            return value
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def open_shard(path: str | os.PathLike[str]) -> Shard:
+    """Open and validate a shard; raises :class:`ShardError` naming the file.
+
+    Checks: readable HDF5, ``format`` and ``format_version``, ``complete`` written,
+    the datasets of :data:`REQUIRED_DATASETS` present with ``n_images`` rows.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ShardError(f"shard file not found: {path}")
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as exc:
+        raise ShardError(f"{path} is not a readable HDF5 file (truncated or corrupt?): {exc}") from None
+    try:
+        fmt = _decode(handle.attrs.get("format"))
+        if fmt != FORMAT_NAME:
+            raise ShardError(f"{path} is not a subslope shard (format attribute {fmt!r}, expected {FORMAT_NAME!r})")
+        version = _decode(handle.attrs.get("format_version"))
+        if version != FORMAT_VERSION:
+            raise ShardError(f"{path} has shard format version {version!r}; this subslope reads version {FORMAT_VERSION}")
+        if not bool(handle.attrs.get("complete", False)):
+            raise ShardError(f"{path} is incomplete (no 'complete' attribute): the writer did not finish")
+        n = int(handle.attrs["n_images"])
+        missing = [d for d in REQUIRED_DATASETS if d not in handle]
+        if missing:
+            raise ShardError(f"{path} lacks required dataset(s) {missing}")
+        for d in REQUIRED_DATASETS:
+            if d != "psf" and handle[d].shape[0] != n:
+                raise ShardError(f"{path}: dataset {d} has {handle[d].shape[0]} rows, n_images = {n}")
+        # Touch the last image: a truncated file fails here rather than mid-training.
+        if n:
+            handle["images"][n - 1]
+    except ShardError:
+        handle.close()
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        handle.close()
+        raise ShardError(f"{path} is corrupt: {exc}") from None
+    return Shard(path, handle)

@@ -1,0 +1,80 @@
+"""The trained estimator on the γ grid: ``ln r̂(x|γ_g)`` of every image (float64).
+
+Images go through the same pre-processing as in training (whitening with the training
+statistics and the circular mask of ``mask_factor`` × θ_E about the lens centre,
+:mod:`subslope.nre.preprocess`); the trunk runs once per image and the head on every
+(image, γ) pair (:meth:`subslope.nre.models.RatioEstimator.log_ratio_grid`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from subslope.devices import pick_device
+from subslope.nre.preprocess import preprocess, read_whitening
+from subslope.stats.intervals import check_grid
+from subslope.physics.instrument import PIXEL_SCALE
+
+__all__ = ["log_ratio_profiles"]
+
+
+def log_ratio_profiles(
+    model,
+    images,
+    theta_e,
+    lens_x,
+    lens_y,
+    whitening,
+    gammas,
+    *,
+    batch_size: int = 64,
+    device=None,
+    pixel_scale: float = PIXEL_SCALE,
+    mask_factor: float | None = 1.5,
+) -> np.ndarray:
+    """``ln r̂(x_b|γ_g)`` of every image on the grid: ``(B, G)`` float64.
+
+    Parameters
+    ----------
+    model:
+        A :class:`subslope.nre.RatioEstimator` (from :func:`subslope.nre.load_estimator`).
+        It is moved to ``device`` and put in eval mode.
+    images:
+        ``(B, H, W)`` raw images in e⁻/s per pixel; anything sliceable along the first
+        axis (numpy array, h5py dataset), read ``batch_size`` images at a time.
+    theta_e, lens_x, lens_y:
+        ``(B,)`` (or scalars): Einstein radius and lens centre in arcsec, for the mask.
+    whitening:
+        ``(mean, std)``, a ``{"mean", "std"}`` mapping or a JSON path
+        (:func:`subslope.nre.read_whitening`); for a checkpoint, ``metadata["whitening"]``.
+    gammas:
+        1-D grid (:func:`subslope.stats.intervals.gamma_grid`).
+    batch_size:
+        Images per forward pass (the trunk runs once per image, the head on B × G pairs).
+    device:
+        ``None``: CUDA when available, else CPU (decided at call time).
+    pixel_scale, mask_factor:
+        Pre-processing; pass ``metadata["preprocess"]`` values of the checkpoint.
+    """
+    g = check_grid(gammas)
+    if int(batch_size) != batch_size or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    mean, std = read_whitening(whitening)
+    n = len(images)
+    te, cx, cy = (np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy() for v in (theta_e, lens_x, lens_y))
+    dev = pick_device(device)
+    model = model.to(dev).eval()
+    dtype = next(model.parameters()).dtype
+    grid_t = torch.as_tensor(g, dtype=dtype, device=dev)
+    out = np.empty((n, g.size), dtype=np.float64)
+    with torch.inference_mode():
+        for s in range(0, n, int(batch_size)):
+            e = min(s + int(batch_size), n)
+            x = np.asarray(images[s:e], dtype=np.float32)
+            if x.ndim != 3:
+                raise ValueError(f"images must have shape (B, H, W), got a batch of shape {x.shape}")
+            x = preprocess(x, te[s:e], cx[s:e], cy[s:e], mean, std, pixel_scale=pixel_scale, mask_factor=mask_factor)
+            xt = torch.as_tensor(x, dtype=dtype, device=dev)
+            out[s:e] = model.log_ratio_grid(xt, grid_t).double().cpu().numpy()
+    return out

@@ -1,0 +1,93 @@
+"""The population kernels of a render call, compiled once per process and device.
+
+:func:`kernels_for` returns the fused pair kernels of :mod:`subslope.physics.pairs`
+either ``torch.compile``'d (``RenderSettings.compile`` 'on', or 'auto' on a CPU with a
+C compiler) or eager. Compiled graphs are cached per (device type, kernel) for the
+life of the process; :func:`clear_cache` forgets them (tests use it to exercise a
+fresh compile).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from subslope.physics.pairs.sums import (circle_peaks, direct_sums, direct_sums_few, far_sums, few_sums_with_sheet,
+                                         near_tile_sums)
+from subslope.render.settings import RenderSettings
+
+__all__ = ["FEW_MEMBERS", "Kernels", "clear_cache", "kernels_for"]
+
+log = logging.getLogger(__name__)
+
+_COMPILED: dict[Any, Any] = {}
+_COMPILE_FAILED: set = set()
+_MAX_KERNEL_GRAPHS = 64
+_KERNEL_FUNCTIONS = {"direct": direct_sums, "few": direct_sums_few, "few_sheet": few_sums_with_sheet,
+                     "far": far_sums, "near": near_tile_sums, "peaks": circle_peaks}
+#: Populations of fewer members than this are summed by ``direct_sums_few`` (members
+#: on the outer axis) instead of ``direct_sums`` (members vectorised).
+FEW_MEMBERS = 32
+
+
+@dataclass(frozen=True)
+class Kernels:
+    """The population kernels of one render call (compiled or eager)."""
+
+    direct: Any
+    few: Any
+    few_sheet: Any
+    far: Any
+    near: Any
+    peaks: Any
+    compiled: bool
+
+
+def _compiled_or_eager(name: str, device: torch.device):
+    fn = _KERNEL_FUNCTIONS[name]
+    key = (device.type, name)
+    if key in _COMPILE_FAILED:
+        return fn
+    if key not in _COMPILED:
+        # dynamic shapes: one graph per (profile, table rows, dtype), whatever the
+        # member and point counts; dynamo's default of 8 graphs per function would
+        # silently fall back to eager in a process that renders many settings.
+        dynamo_config = torch._dynamo.config
+        dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, _MAX_KERNEL_GRAPHS)
+        _COMPILED[key] = torch.compile(fn, dynamic=True, fullgraph=True)
+    compiled = _COMPILED[key]
+
+    def run(*args):
+        if key in _COMPILE_FAILED:
+            return fn(*args)
+        try:
+            return compiled(*args)
+        except Exception as exc:  # pragma: no cover - depends on the toolchain
+            log.warning("torch.compile of the %s population kernel failed (%s); using eager", name, exc)
+            _COMPILE_FAILED.add(key)
+            return fn(*args)
+
+    return run
+
+
+def kernels_for(settings: RenderSettings, device: torch.device) -> Kernels:
+    """Population kernels: torch.compile'd (``compile`` 'on', or 'auto' on a CPU with a
+    C compiler) or eager (:mod:`subslope.physics.pairs.sums`)."""
+    want = settings.compile == "on" or (settings.compile == "auto" and device.type == "cpu")
+    if want and device.type == "cpu" and shutil.which("gcc") is None and shutil.which("cc") is None:
+        want = False
+    if not want:
+        return Kernels(direct_sums, direct_sums_few, few_sums_with_sheet, far_sums, near_tile_sums, circle_peaks,
+                        False)
+    return Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "few", "few_sheet", "far", "near", "peaks")),
+                    True)
+
+
+def clear_cache() -> None:
+    """Forget every compiled kernel and every recorded compile failure."""
+    _COMPILED.clear()
+    _COMPILE_FAILED.clear()

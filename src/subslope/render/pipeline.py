@@ -1,0 +1,436 @@
+"""Batched, noise-free renderer of lens images (``docs/physics.md``, ``docs/simulation.md``).
+
+Pipeline for a batch of ``B`` systems, one function per step (``docs/simulation.md``):
+
+1. coordinates: the ``(npix·k)²`` sub-pixel grid (``k = supersample``) plus, when
+   ``k > 1``, the ``npix²`` pixel centres (needed for the negative sheets);
+2. lens equation: main-lens EPL (amplitude θ_E^(γ−1)) + external shear (about the
+   origin) + m = 3, 4 multipoles (about the lens centre) + the subhalo population and
+   its negative sheet, all in the lens plane; with line-of-sight halos, one extra plane
+   per slice redshift (own negative sheet) and :func:`subslope.physics.raytrace.multi_plane_ray_shoot`;
+3. source surface brightness at β (COSMOS stamps via :mod:`subslope.physics.light.pixelated`, or
+   an elliptical Sérsic rotated by ``src_rotation``, or a multi-Sérsic source: a sum of
+   Sérsic components whose shapes and centre offsets rotate with ``src_rotation``),
+   plus the unlensed Sérsic lens light;
+4. binning of the k×k sub-pixels, × pixel area (e⁻/s per pixel), PSF convolution
+   (:func:`subslope.physics.instrument.convolve`, one image at a time).
+
+Negative sheets: ``κ_sheet = −(1/P) Σ_pixels Σ_members κ_i`` with the member
+convergences taken at the pixel-centre rays *on that plane* (for the main-lens plane of
+a single-plane scene: the pixel centres themselves); the sheet deflection is
+``κ_sheet·(x, y)`` about the plane's origin. The summed convergence comes out of the
+same fused pass as the deflections (one extra multiply), so the sheet costs no second
+pass over the population.
+
+Components whose macro keys are absent (or populations that are empty) are not
+evaluated at all; every evaluated step increments
+:data:`subslope.render.counters.STEP_COUNTS`.
+
+Population passes (subhalos, LoS halos) run on member tables and fused pair kernels
+(:mod:`subslope.physics.pairs.sums`, ``torch.compile``'d on CPU); large populations use the
+near/far split of :mod:`subslope.render.nearfar` (``RenderSettings.population``);
+:mod:`subslope.render.populations` holds the population passes,
+:mod:`subslope.render.kernels` the compiled kernels, :mod:`subslope.render.settings`
+the knobs.
+
+Determinism: on CPU (``RenderSettings.batching = 'auto'``) the images of a batch are rendered one at a time, so image ``i``
+alone == image ``i`` in a batch, bit for bit (all member counts, chunk widths and
+split radii are per image). On other devices images are rendered in sub-batches
+padded to the largest population: there an image alone and in a batch agree to float
+rounding (member sums are compiled reductions whose order may depend on the padded
+width); inactive planes are exact no-ops and the PSF is applied image by image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from subslope.devices import pick_device
+from subslope.physics.grid import pixel_grid
+from subslope.physics.instrument import convolve
+from subslope.physics.light.pixelated import pixelated_light
+from subslope.physics.light.sersic import multi_sersic_from_magnitude, sersic_ellipse_from_magnitude
+from subslope.physics.pairs.epl import epl_table
+from subslope.physics.profiles.epl import theta_e_to_amp
+from subslope.physics.profiles.multipole import multipole_deflection
+from subslope.physics.profiles.shear import shear_deflection
+from subslope.physics.raytrace import Plane, multi_plane_ray_shoot
+from subslope.ragged import pack_ragged
+from subslope.render.counters import count_step
+from subslope.render.kernels import Kernels, kernels_for
+from subslope.render.nearfar import GridBlock
+from subslope.render.populations import (PROFILE_KEYS, Geometry, Population, flat_table, main_lens_deflection,
+                                         pack_population, population_pass, select_systems)
+from subslope.render.settings import PixelatedSources, RenderSettings, chunk_width
+
+__all__ = ["RenderSettings", "PixelatedSources", "render_smooth", "render"]
+
+
+# ------------------------------------------------------------------------------ checks
+_REQUIRED = ("z_lens", "z_source", "lens_x", "lens_y", "theta_e", "lens_e1", "lens_e2", "gamma_ml",
+             "src_x", "src_y", "src_rotation")
+_GROUPS = {"multipoles": ("a3", "phi3", "a4", "phi4"), "shear": ("shear_g1", "shear_g2"),
+           "lens_light": ("light_mag", "light_r", "light_n", "light_e1", "light_e2"),
+           "source_sersic": ("src_mag", "src_r", "src_n", "src_e1", "src_e2")}
+
+
+def _multi_sersic_slots(macro: dict) -> int:
+    """Number K of multi-Sérsic component slots in ``macro`` (0: not a multi-Sérsic source)."""
+    if "src_ncomp" not in macro:
+        return 0
+    k = 0
+    while f"src_frac_{k}" in macro:
+        k += 1
+    return k
+
+
+_MULTI_PER = ("frac", "r", "n", "e1", "e2", "dx", "dy")
+
+
+def _check_macro(macro: dict, sources) -> int:
+    missing = [k for k in _REQUIRED if k not in macro]
+    if missing:
+        raise ValueError(f"macro is missing keys {missing} (see subslope.simulation.macro.sample_macro)")
+    n = len(np.asarray(macro["z_lens"]))
+    for k, v in macro.items():
+        if np.ndim(v) != 1 or len(v) != n:
+            raise ValueError(f"macro[{k!r}] must be 1-D of length B = {n}, got shape {np.shape(v)}")
+    for g, keys in _GROUPS.items():
+        have = [k in macro for k in keys]
+        if any(have) and not all(have):
+            raise ValueError(f"macro has only some of the {g} keys {keys}: give all or none")
+    kmax = _multi_sersic_slots(macro)
+    if "src_ncomp" in macro or "src_mag_total" in macro:
+        need = ["src_mag_total", "src_ncomp"] + [f"src_{p}_{j}" for j in range(max(kmax, 1)) for p in _MULTI_PER]
+        missing = [kk for kk in need if kk not in macro]
+        if missing:
+            raise ValueError(f"multi-Sérsic source keys {missing} are missing from macro "
+                             "(see subslope.simulation.scenes.multi_sersic_keys)")
+        if "src_mag" in macro or sources is not None:
+            raise ValueError("give exactly one source: multi-Sérsic keys (src_mag_total, src_ncomp, ...), "
+                             "Sérsic keys (src_mag, ...) or sources=")
+        return n
+    sersic = "src_mag" in macro
+    if sersic and sources is not None:
+        raise ValueError("give either Sérsic source keys (src_mag, ...) in macro or sources=, not both")
+    if not sersic and sources is None:
+        raise ValueError("no source: pass sources=PixelatedSources(...) or Sérsic keys src_mag, src_r, "
+                         "src_n, src_e1, src_e2 in macro")
+    return n
+
+
+def _has(macro: dict, group: str) -> bool:
+    return _GROUPS[group][0] in macro
+
+
+def _bin(img: Tensor, k: int) -> Tensor:
+    """Mean of k×k blocks as a fixed sum of strided slices (element-wise, deterministic)."""
+    if k == 1:
+        return img
+    b, hk, wk = img.shape
+    v = img.reshape(b, hk // k, k, wk // k, k)
+    acc = None
+    for i in range(k):
+        for j in range(k):
+            s = v[:, :, i, :, j]
+            acc = s if acc is None else acc + s
+    return acc * (1.0 / (k * k))
+
+
+# ------------------------------------------------------------------------------- render
+@dataclass(frozen=True)
+class _Batch:
+    """One sub-batch of a render call: images ``idx`` of ``macro`` and what every step
+    of it shares (settings, device, kernels, the point layout)."""
+
+    idx: np.ndarray
+    macro: dict
+    settings: RenderSettings
+    device: torch.device
+    kernels: Kernels
+    geometry: Geometry
+    grid: tuple[Tensor, Tensor, int]
+
+    @property
+    def size(self) -> int:
+        return self.idx.size
+
+    def par(self, key: str) -> Tensor:
+        """Macro parameter ``key`` of the sub-batch, ``(b, 1)`` in the render dtype."""
+        return torch.as_tensor(np.asarray(self.macro[key], dtype=np.float64)[self.idx], dtype=self.settings.dtype,
+                               device=self.device)[:, None]
+
+    def values(self, key: str) -> np.ndarray:
+        """Macro parameter ``key`` of the sub-batch, ``(b,)`` float64."""
+        return np.asarray(self.macro[key], dtype=np.float64)[self.idx]
+
+
+def _flat_members(pop, sel: np.ndarray) -> dict[str, np.ndarray | None]:
+    """The parameters of members ``sel`` of a ragged population, flat."""
+    return {kk: (None if getattr(pop, kk, None) is None else np.asarray(getattr(pop, kk))[sel])
+            for kk in PROFILE_KEYS[pop.profile]}
+
+
+def _subhalo_population(batch: _Batch, subhalos) -> Population | None:
+    """The lens-plane subhalos of the sub-batch as a padded population (None if empty)."""
+    if subhalos is None:
+        return None
+    counts, sel = select_systems(subhalos.counts, batch.idx)
+    if counts.sum() == 0:
+        return None
+    s = batch.settings
+    return pack_population(subhalos.profile, _flat_members(subhalos, sel), counts, s.n_terms, s.dtype, batch.device)
+
+
+def _lens_plane(batch: _Batch, sub_pop: Population | None):
+    """The deflection of the main-lens plane, ``(tx, ty, displaced) -> (ax, ay)``: EPL +
+    shear + multipoles + the subhalo population and its sheet."""
+    settings, kernels, par = batch.settings, batch.kernels, batch.par
+    n_pix = batch.grid[2]
+    lens_amp = theta_e_to_amp(par("theta_e"), par("gamma_ml"))
+    lens = {kk: par(kk) for kk in ("gamma_ml", "lens_e1", "lens_e2", "lens_x", "lens_y")}
+    lens_table = epl_table({"amp": lens_amp, "gamma": lens["gamma_ml"], "e1": lens["lens_e1"],
+                            "e2": lens["lens_e2"], "x": lens["lens_x"], "y": lens["lens_y"]},
+                           settings.n_terms_main).contiguous()
+    shear = {kk: par(kk) for kk in _GROUPS["shear"]} if _has(batch.macro, "shear") else None
+    mpole = {kk: par(kk) for kk in _GROUPS["multipoles"]} if _has(batch.macro, "multipoles") else None
+
+    def lens_plane(tx: Tensor, ty: Tensor, displaced: bool = True) -> tuple[Tensor, Tensor]:
+        count_step("main_lens")
+        ax, ay = main_lens_deflection(tx, ty, lens_table, kernels)
+        if shear is not None:
+            count_step("shear")
+            sx, sy = shear_deflection(tx, ty, shear["shear_g1"], shear["shear_g2"])
+            ax, ay = ax + sx, ay + sy
+        if mpole is not None:
+            count_step("multipoles")
+            for m, a, phi in ((3, "a3", "phi3"), (4, "a4", "phi4")):
+                mx, my = multipole_deflection(tx, ty, m, mpole[a], mpole[phi], lens["lens_x"], lens["lens_y"])
+                ax, ay = ax + mx, ay + my
+        if sub_pop is not None:
+            count_step("subhalos")
+            geo = batch.geometry if displaced else dataclasses.replace(batch.geometry, displaced=False)
+            px, py, _ = population_pass(sub_pop, tx, ty, settings, kernels, n_pix, geo)
+            ax, ay = ax + px, ay + py
+        return ax, ay
+
+    return lens_plane
+
+
+def _los_planes(batch: _Batch, los, lens_plane, zl: np.ndarray, zs: np.ndarray) -> list[Plane]:
+    """The line-of-sight planes in front of and behind the lens plane, with the lens
+    plane between them (an empty list when the sub-batch has no LoS halos)."""
+    if los is None:
+        return []
+    counts, sel = select_systems(los.counts, batch.idx)
+    if counts.sum() == 0:
+        return []
+    settings, device, b = batch.settings, batch.device, batch.size
+    sys_local = np.repeat(np.arange(b), counts)
+    z_h = np.asarray(los.z, dtype=np.float64)[sel]
+    bad = z_h >= zs[sys_local]
+    if np.any(bad):
+        j = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"los.z = {z_h[j]} is not in front of z_source = {zs[sys_local[j]]} "
+                         f"of system {int(batch.idx[sys_local[j]])}")
+    front, back = [], []
+    # one member table for every LoS halo of the sub-batch (plus a zero-amplitude
+    # column for padding); each slice plane gathers its columns
+    table_all = flat_table(los.profile, _flat_members(los, sel), settings.n_terms, settings.dtype, device)
+    n_los = table_all.shape[-1] - 1
+    for zu in np.unique(z_h):
+        on = np.flatnonzero(z_h == zu)
+        c_slice = np.bincount(sys_local[on], minlength=b)
+        cols, _ = pack_ragged(on, counts=c_slice, n_max=max(1, int(c_slice.max())), fill=n_los)
+        pop = Population(los.profile, table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2), c_slice)
+        has = c_slice > 0
+
+        def deflect(tx, ty, pop=pop):
+            count_step("los")
+            ax, ay, _ = population_pass(pop, tx, ty, settings, batch.kernels, batch.grid[2], batch.geometry)
+            return ax, ay
+
+        a_front, a_back = has & (zu < zl), has & (zu >= zl)
+        if a_front.any():
+            front.append(Plane(np.full(b, zu), (deflect,), a_front))
+        if a_back.any():
+            back.append(Plane(np.full(b, zu), (deflect,), a_back))
+    return front + [Plane(zl, (lens_plane,), None)] + back
+
+
+def _trace(batch: _Batch, planes: list[Plane], lens_plane, zs: np.ndarray) -> tuple[Tensor, Tensor]:
+    """Source-plane positions ``(b, P)`` of every ray: multi-plane with LoS planes,
+    else the single lens plane."""
+    xg, yg, _ = batch.grid
+    b = batch.size
+    if planes:
+        count_step("multi_plane")
+        return multi_plane_ray_shoot(xg.expand(b, -1), yg.expand(b, -1), planes, zs)
+    count_step("single_plane")
+    ax, ay = lens_plane(xg.expand(b, -1), yg.expand(b, -1), displaced=False)
+    return xg - ax, yg - ay
+
+
+def _multi_sersic_source(batch: _Batch, bx: Tensor, by: Tensor, kmax: int) -> Tensor:
+    """Surface brightness of a multi-Sérsic source: components rotated with the source."""
+    par, idx = batch.par, batch.idx
+    count_step("source_multi_sersic")
+    rot = par("src_rotation")
+    c2, s2 = torch.cos(2 * rot), torch.sin(2 * rot)
+    c1, s1 = torch.cos(rot), torch.sin(rot)
+    cx, cy = par("src_x"), par("src_y")
+    # Components switched off (zero flux for every image of the sub-batch) are skipped.
+    active = [j for j in range(kmax) if np.any(np.asarray(batch.macro[f"src_frac_{j}"])[idx] > 0)]
+    comp: dict[str, list] = {kk: [] for kk in ("f", "r", "n", "e1", "e2", "x", "y")}
+    for j in active:
+        count_step("source_component")
+        e1, e2 = par(f"src_e1_{j}"), par(f"src_e2_{j}")
+        dx, dy = par(f"src_dx_{j}"), par(f"src_dy_{j}")
+        comp["f"].append(par(f"src_frac_{j}"))
+        comp["r"].append(par(f"src_r_{j}"))
+        comp["n"].append(par(f"src_n_{j}"))
+        comp["e1"].append(c2 * e1 - s2 * e2)
+        comp["e2"].append(s2 * e1 + c2 * e2)
+        comp["x"].append(cx + c1 * dx - s1 * dy)
+        comp["y"].append(cy + s1 * dx + c1 * dy)
+    return multi_sersic_from_magnitude(bx, by, par("src_mag_total"), comp["f"], comp["r"], comp["n"],
+                                       comp["e1"], comp["e2"], comp["x"], comp["y"],
+                                       zero_point=batch.settings.zero_point)
+
+
+def _source_light(batch: _Batch, bx: Tensor, by: Tensor, sources: PixelatedSources | None) -> Tensor:
+    """Source surface brightness at the source-plane positions (multi-Sérsic, Sérsic or
+    pixelated), e⁻/s per arcsec²."""
+    par, settings, device = batch.par, batch.settings, batch.device
+    kmax = _multi_sersic_slots(batch.macro)
+    if kmax:
+        return _multi_sersic_source(batch, bx, by, kmax)
+    if sources is None:
+        count_step("source_sersic")
+        rot = par("src_rotation")
+        e1, e2 = par("src_e1"), par("src_e2")
+        c2, s2 = torch.cos(2 * rot), torch.sin(2 * rot)
+        return sersic_ellipse_from_magnitude(bx, by, par("src_mag"), par("src_r"), par("src_n"),
+                                             c2 * e1 - s2 * e2, s2 * e1 + c2 * e2, par("src_x"), par("src_y"),
+                                             zero_point=settings.zero_point)
+    count_step("source_pixelated")
+    dtype, idx = settings.dtype, batch.idx
+    st = torch.as_tensor(sources.stamps)
+    st = st[torch.as_tensor(idx, device=st.device)].to(dtype=dtype, device=device)
+    offs = torch.as_tensor(sources.offsets)[torch.as_tensor(idx)].to(dtype=dtype, device=device)
+    ps = torch.as_tensor(np.asarray(sources.pixel_scale, dtype=np.float64)[idx], dtype=dtype, device=device)[:, None]
+    return pixelated_light(bx, by, st, ps, par("src_rotation"), par("src_x"), par("src_y"),
+                           order=settings.source_interpolation, stamp_offset_x=offs[:, 0:1],
+                           stamp_offset_y=offs[:, 1:2])
+
+
+def _observe(batch: _Batch, sb: Tensor, psf: Tensor, smooth: bool) -> Tensor:
+    """Add the lens light, bin the sub-pixels, × pixel area and convolve with the PSF:
+    ``(b, npix, npix)`` e⁻/s per pixel."""
+    settings, par = batch.settings, batch.par
+    xg, yg, _ = batch.grid
+    k = settings.supersample
+    n_ss = (settings.npix * k) ** 2
+    if not smooth and _has(batch.macro, "lens_light"):
+        count_step("lens_light")
+        sb = sb + sersic_ellipse_from_magnitude(
+            xg[:, :n_ss], yg[:, :n_ss], par("light_mag"), par("light_r"), par("light_n"), par("light_e1"),
+            par("light_e2"), par("lens_x"), par("lens_y"), zero_point=settings.zero_point)
+    m = settings.npix * k
+    img = sb.reshape(batch.size, m, m)
+    if k > 1:
+        count_step("supersample_bin")
+        img = _bin(img, k)
+    img = img * (settings.pixel_scale ** 2)
+    count_step("psf")
+    return torch.cat([convolve(img[i:i + 1], psf, method=settings.convolution) for i in range(batch.size)], 0)
+
+
+def _render_group(batch: _Batch, psf: Tensor, sources: PixelatedSources | None, subhalos, los,
+                  smooth: bool) -> Tensor:
+    """The images of one sub-batch: trace the rays through the planes, then observe."""
+    zl, zs = batch.values("z_lens"), batch.values("z_source")
+    lens_plane = _lens_plane(batch, None if smooth else _subhalo_population(batch, subhalos))
+    planes = [] if smooth else _los_planes(batch, los, lens_plane, zl, zs)
+    bx, by = _trace(batch, planes, lens_plane, zs)
+    n_ss = (batch.settings.npix * batch.settings.supersample) ** 2
+    sb = _source_light(batch, bx[:, :n_ss], by[:, :n_ss], sources)
+    return _observe(batch, sb, psf, smooth)
+
+
+def _check_populations(n: int, subhalos, los) -> None:
+    if subhalos is not None and len(subhalos.counts) != n:
+        raise ValueError(f"subhalos.counts has {len(subhalos.counts)} systems, macro has {n}")
+    if los is not None and len(los.counts) != n:
+        raise ValueError(f"los.counts has {len(los.counts)} systems, macro has {n}")
+    if subhalos is not None and subhalos.profile not in PROFILE_KEYS:
+        raise ValueError(f"subhalos.profile must be one of {tuple(PROFILE_KEYS)}, got {subhalos.profile!r}")
+
+
+def _points(settings: RenderSettings, device: torch.device) -> tuple[Tensor, Tensor, Geometry]:
+    """The rays of a render call ``(1, P)``: the sub-pixel grid, then (supersampled) the
+    pixel centres that the negative sheets use, and their block layout."""
+    dtype, k = settings.dtype, settings.supersample
+    xs, ys = pixel_grid(settings.npix, settings.pixel_scale, k, dtype=dtype, device=device)
+    xg, yg = xs.reshape(1, -1), ys.reshape(1, -1)
+    if k > 1:  # append the pixel centres (rays used for the negative sheets)
+        xp, yp = pixel_grid(settings.npix, settings.pixel_scale, 1, dtype=dtype, device=device)
+        xg = torch.cat([xg, xp.reshape(1, -1)], 1)
+        yg = torch.cat([yg, yp.reshape(1, -1)], 1)
+    blocks = [GridBlock(0, settings.npix * k, settings.pixel_scale / k)]
+    if k > 1:
+        blocks.append(GridBlock(blocks[0].m ** 2, settings.npix, settings.pixel_scale))
+    return xg, yg, Geometry(tuple(blocks), len(blocks) - 1, (xg, yg))
+
+
+def _sub_batches(n: int, n_all: int, settings: RenderSettings, device: torch.device,
+                 kernels: Kernels) -> list[np.ndarray]:
+    """Image indices of each sub-batch (:attr:`RenderSettings.batching`)."""
+    per_image = settings.batching == "per_image" or (settings.batching == "auto" and device.type == "cpu")
+    if per_image:
+        return [np.array([i]) for i in range(n)]
+    bs = max(1, settings.max_elements // (chunk_width(settings, n_all, kernels.compiled) * n_all))
+    return [np.arange(s, min(n, s + bs)) for s in range(0, n, bs)]
+
+
+def _render(macro, psf, settings: RenderSettings, sources, subhalos, los, smooth: bool) -> Tensor:
+    if not isinstance(settings, RenderSettings):
+        raise ValueError(f"settings must be a RenderSettings, got {type(settings).__name__}")
+    n = _check_macro(macro, sources)
+    _check_populations(n, subhalos, los)
+    device = pick_device(settings.device, key="simulation.render.device")
+    psf_t = torch.as_tensor(psf).to(dtype=settings.dtype, device=device)
+    xg, yg, geometry = _points(settings, device)
+    kernels = kernels_for(settings, device)
+    grid = (xg, yg, settings.npix ** 2)
+    with torch.no_grad():
+        out = [_render_group(_Batch(g, macro, settings, device, kernels, geometry, grid), psf_t, sources, subhalos,
+                             los, smooth)
+               for g in _sub_batches(n, xg.shape[1], settings, device, kernels)]
+    return torch.cat(out, 0)
+
+
+def render_smooth(macro: dict[str, np.ndarray], psf: Tensor, settings: RenderSettings, *,
+                  sources: PixelatedSources | None = None) -> Tensor:
+    """Noise-free smooth model, ``(B, npix, npix)`` e⁻/s per pixel: main-lens EPL + shear +
+    multipoles + source, PSF-convolved; no lens light, no subhalos, no LoS (used to
+    place subhalos on the arc)."""
+    return _render(macro, psf, settings, sources, None, None, smooth=True)
+
+
+def render(macro: dict[str, np.ndarray], psf: Tensor, settings: RenderSettings, *,
+           sources: PixelatedSources | None = None, subhalos=None, los=None) -> Tensor:
+    """Noise-free full image, ``(B, npix, npix)`` e⁻/s per pixel.
+
+    ``macro``: :func:`subslope.simulation.macro.sample_macro` output (absent keys = component off);
+    ``psf``: odd 2-D kernel (sum 1) at the pixel scale; ``sources``: pixelated sources,
+    or None with Sérsic source keys in ``macro``; ``subhalos``:
+    :class:`subslope.simulation.subhalos.SubhaloPopulation` ('epl' | 'nfw' | 'tnfw'); ``los``:
+    :class:`subslope.simulation.los.LosPopulation` (reduced deflections for each system's z_source).
+    """
+    return _render(macro, psf, settings, sources, subhalos, los, smooth=False)

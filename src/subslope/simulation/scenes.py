@@ -1,0 +1,535 @@
+"""Scene specifications: what a family of simulated images is drawn from.
+
+A *scene* is everything needed to draw the parameters of one family of simulated images:
+which components are on, the prior of every parameter of Table 1 of the reference paper
+(docs/simulation.md), the subhalo and line-of-sight (LoS) models, the source kind and how
+many images share one label γ (``images_per_set``). Scenes are declared in the config
+under ``scenes.<name>``; each entry is merged key by key onto a *preset*:
+
+- ``train``: the paper's training scene (N_sub ~ U{0, 3000}, COSMOS training sources);
+- ``validation``: as ``train`` but N_sub ~ U{0, 1800} and validation sources;
+- ``test_epl``: as ``validation`` with test sources and sets of 13 images sharing γ;
+- ``nfw`` / ``tnfw``: the CDM test sets: NFW / truncated-NFW subhalos placed everywhere,
+  NFW LoS halos, concentration = a × c_CDM(M, z) × 10^N(0, 0.1 dex), sets of 13 images;
+- any other name starts from the ``train`` preset.
+
+A prior entry (a mapping with ``dist``) replaces the preset's prior as a whole; every
+other mapping is merged key by key. Unknown keys raise :class:`SceneError` naming the
+full key (``scenes.train.main_lens.theta_ee``).
+
+:func:`subslope.simulation.macro.sample_macro` draws the per-image parameters of a scene.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+
+from subslope.simulation.priors import PowerLaw, Prior, PriorError
+
+__all__ = [
+    "SceneError",
+    "SUBHALO_PROFILES",
+    "LOS_PROFILES",
+    "PLACEMENTS",
+    "SOURCE_KINDS",
+    "COSMOS_SPLITS",
+    "PAPER_SCENE",
+    "PRESETS",
+    "Components",
+    "Redshifts",
+    "SourceSpec",
+    "MultiSersicSpec",
+    "MAX_SOURCE_COMPONENTS",
+    "MULTI_SERSIC_KEYS",
+    "multi_sersic_keys",
+    "MainLensSpec",
+    "MultipoleSpec",
+    "ShearSpec",
+    "LensLightSpec",
+    "SubhaloSpec",
+    "LosSpec",
+    "ConcentrationSpec",
+    "Scene",
+    "preset",
+    "scenes_from_config",
+    "resolved_scene",
+    "scene_multipliers",
+    "simulation_sections",
+]
+
+SUBHALO_PROFILES = ("epl", "nfw", "tnfw")
+LOS_PROFILES = ("epl", "nfw")
+PLACEMENTS = ("arc", "everywhere")
+SOURCE_KINDS = ("cosmos", "sersic", "multi_sersic")
+#: Largest number of components of the multi-Sérsic source (the upper end of the
+#: ``source.multi_sersic.n_components`` support may not exceed it).
+MAX_SOURCE_COMPONENTS = 8
+#: Per-component macro keys of the multi-Sérsic source (``src_<name>_<k>``).
+MULTI_SERSIC_KEYS = ("frac", "r", "n", "e1", "e2", "dx", "dy")
+COSMOS_SPLITS = ("train", "validation", "test")
+
+
+class SceneError(PriorError):
+    """A scene configuration is malformed; the message names the config key."""
+
+
+def _load_presets() -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    from importlib import resources as importlib_resources
+
+    import yaml
+
+    text = (importlib_resources.files("subslope") / "schemas" / "scene_presets.yaml").read_text(encoding="utf-8")
+    doc = yaml.safe_load(text)
+    return doc["paper_scene"], doc["presets"]
+
+
+#: The training scene of the reference paper and the overrides of the named scenes
+#: (``schemas/scene_presets.yaml``, where each value is commented).
+PAPER_SCENE, PRESETS = _load_presets()
+
+
+def _is_prior(d: Any) -> bool:
+    return isinstance(d, Mapping) and "dist" in d
+
+
+def _merge(base: dict[str, Any], over: Mapping[str, Any], key: str) -> dict[str, Any]:
+    """Merge ``over`` onto ``base``; unknown keys raise; prior mappings replace whole."""
+    if not isinstance(over, Mapping):
+        raise SceneError(f"config key {key} = {over!r} must be a mapping")
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        sub = f"{key}.{k}"
+        if k not in base:
+            raise SceneError(
+                f"unknown config key {sub}; allowed keys at {key}: {', '.join(sorted(base))}"
+            )
+        if isinstance(base[k], Mapping) and not _is_prior(base[k]) and isinstance(v, Mapping):
+            out[k] = _merge(base[k], v, sub)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def preset(name: str) -> dict[str, Any]:
+    """Complete config mapping of the preset scene ``name`` (``train`` for other names)."""
+    return _merge(PAPER_SCENE, PRESETS.get(name, {}), f"scenes.{name}")
+
+
+# ---------------------------------------------------------------------------- specs
+def _prior(d: Mapping[str, Any], k: str, key: str) -> Prior:
+    return Prior.from_config(d[k], f"{key}.{k}")
+
+
+def _choice(value: Any, allowed: tuple[str, ...], key: str) -> str:
+    if value not in allowed:
+        raise SceneError(f"config key {key} = {value!r} is not allowed; allowed: {', '.join(allowed)}")
+    return value
+
+
+def _real(value: Any, key: str, lo: float, hi: float, lo_open=False, hi_open=False) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+    if not ok:
+        left, right = "(" if lo_open else "[", ")" if hi_open else "]"
+        raise SceneError(f"config key {key} = {value!r} must be a number in {left}{lo}, {hi}{right}")
+    return float(value)
+
+
+def _bool(value: Any, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise SceneError(f"config key {key} = {value!r} must be true or false")
+    return value
+
+
+def _within(p: Prior, key: str, lo: float, hi: float) -> Prior:
+    s_lo, s_hi = p.support
+    if s_lo < lo or s_hi > hi:
+        raise SceneError(
+            f"config key {key}: support [{s_lo}, {s_hi}] of the prior must lie within [{lo}, {hi}]"
+        )
+    return p
+
+
+def _multi_sersic(d: Any, key: str) -> MultiSersicSpec:
+    if not isinstance(d, Mapping):
+        raise SceneError(f"config key {key} = {d!r} must be a mapping")
+    spec = MultiSersicSpec(**{p: _prior(d, p, key) for p in (
+        "n_components", "share", "r_sersic", "n_sersic", "e1", "e2", "offset", "offset_angle")})
+    nc = spec.n_components
+    lo, hi = nc.support
+    if nc.dist not in ("uniform_int", "fixed") or lo != int(lo) or hi != int(hi) or lo < 1 \
+            or hi > MAX_SOURCE_COMPONENTS:
+        raise SceneError(f"config key {key}.n_components must be a uniform_int prior or a fixed integer "
+                         f"within [1, {MAX_SOURCE_COMPONENTS}]")
+    _within(spec.share, f"{key}.share", 0.0, math.inf)
+    _within(spec.r_sersic, f"{key}.r_sersic", 1e-6, math.inf)
+    _within(spec.n_sersic, f"{key}.n_sersic", 0.2, 10.0)
+    for p in ("e1", "e2"):
+        _within(getattr(spec, p), f"{key}.{p}", -0.9, 0.9)
+    _within(spec.offset, f"{key}.offset", 0.0, math.inf)
+    return spec
+
+
+@dataclass(frozen=True)
+class Components:
+    """Which optional components are rendered (main lens and source are always on)."""
+
+    lens_light: bool = True
+    multipoles: bool = True
+    shear: bool = True
+    subhalos: bool = True
+    los: bool = True
+
+
+@dataclass(frozen=True)
+class Redshifts:
+    z_lens: Prior
+    z_source: Prior
+
+
+@dataclass(frozen=True)
+class MultiSersicSpec:
+    """Clumps of the multi-Sérsic source (``source.kind = 'multi_sersic'``).
+
+    ``n_components`` (integer prior, support within [1, MAX_SOURCE_COMPONENTS]) counts the
+    main body plus the clumps. Each clump k ≥ 1 draws an unnormalised flux weight
+    ``share`` (the body's weight is 1), ``r_sersic`` (arcsec), ``n_sersic``, ``e1``,
+    ``e2`` and a centre ``offset`` (arcsec) at ``offset_angle`` (rad) from the source
+    centre, in the source's own frame (rotated with it by ``src_rotation``).
+    """
+
+    n_components: Prior
+    share: Prior
+    r_sersic: Prior
+    n_sersic: Prior
+    e1: Prior
+    e2: Prior
+    offset: Prior
+    offset_angle: Prior
+
+    @property
+    def max_components(self) -> int:
+        """K: the number of component slots stored per image (top of the count support)."""
+        return int(self.n_components.support[1])
+
+
+def multi_sersic_keys(max_components: int) -> list[str]:
+    """Macro keys of a multi-Sérsic source with ``max_components`` slots, in drawing order."""
+    return ["src_mag_total", "src_ncomp"] + [
+        f"src_{name}_{k}" for k in range(max_components) for name in MULTI_SERSIC_KEYS
+    ]
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """Source light: a COSMOS galaxy of ``split``, a parametric Sérsic or a multi-Sérsic.
+
+    ``x``, ``y`` (arcsec) and ``rotation`` (rad) apply to every kind; ``mag``,
+    ``r_sersic`` (arcsec), ``n_sersic``, ``e1``, ``e2`` to ``kind='sersic'`` and, as the
+    total magnitude and the main body, to ``kind='multi_sersic'``, whose clumps follow
+    ``multi_sersic``.
+    """
+
+    kind: str
+    split: str
+    x: Prior
+    y: Prior
+    rotation: Prior
+    mag: Prior
+    r_sersic: Prior
+    n_sersic: Prior
+    e1: Prior
+    e2: Prior
+    multi_sersic: MultiSersicSpec
+
+
+@dataclass(frozen=True)
+class MainLensSpec:
+    """Main-lens EPL: centre (arcsec), Einstein radius (arcsec), e1, e2, slope γ_ML."""
+
+    x: Prior
+    y: Prior
+    theta_e: Prior
+    e1: Prior
+    e2: Prior
+    gamma: Prior
+
+
+@dataclass(frozen=True)
+class MultipoleSpec:
+    """m = 3, 4 multipole strengths a_m and angles φ_m (rad), centred on the lens."""
+
+    a3: Prior
+    phi3: Prior
+    a4: Prior
+    phi4: Prior
+
+
+@dataclass(frozen=True)
+class ShearSpec:
+    g1: Prior
+    g2: Prior
+
+
+@dataclass(frozen=True)
+class LensLightSpec:
+    """Elliptical Sérsic lens light centred on the lens (AB mag, arcsec)."""
+
+    mag: Prior
+    r_sersic: Prior
+    n_sersic: Prior
+    e1: Prior
+    e2: Prior
+
+
+@dataclass(frozen=True)
+class SubhaloSpec:
+    """Subhalo population model.
+
+    ``gamma`` is the prior of the per-system label γ; per subhalo
+    γ_i ~ N(γ, gamma_scatter·γ) truncated to ``gamma_bounds``. ``threshold_fraction`` is
+    used by ``placement='arc'`` only.
+    """
+
+    count: Prior
+    mass: PowerLaw
+    gamma: Prior
+    gamma_scatter: float
+    gamma_bounds: tuple[float, float]
+    e1: Prior
+    e2: Prior
+    profile: str
+    placement: str
+    threshold_fraction: float
+
+
+@dataclass(frozen=True)
+class LosSpec:
+    """Line-of-sight halos: mass-function normalisation δ_los and profile."""
+
+    delta_los: Prior
+    profile: str
+    m_min: float
+    m_max: float
+
+
+@dataclass(frozen=True)
+class ConcentrationSpec:
+    """CDM concentration: c = a · c_DM14(M, z) · 10^N(0, scatter_dex)."""
+
+    multipliers: tuple[float, ...]
+    scatter_dex: float
+    apply_to_los: bool
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Complete specification of one family of simulated images."""
+
+    name: str
+    components: Components
+    images_per_set: int
+    redshifts: Redshifts
+    source: SourceSpec
+    main_lens: MainLensSpec
+    multipoles: MultipoleSpec
+    shear: ShearSpec
+    lens_light: LensLightSpec
+    subhalos: SubhaloSpec
+    los: LosSpec
+    concentration: ConcentrationSpec
+
+    @property
+    def has_label(self) -> bool:
+        """True when images carry the label γ (EPL subhalos or EPL LoS halos are on)."""
+        c = self.components
+        return (c.subhalos and self.subhalos.profile == "epl") or (c.los and self.los.profile == "epl")
+
+    @property
+    def uses_concentration(self) -> bool:
+        """True when some active component is NFW/tNFW (a CDM scene)."""
+        c = self.components
+        return (c.subhalos and self.subhalos.profile != "epl") or (c.los and self.los.profile == "nfw")
+
+    @classmethod
+    def from_config(cls, name: str, spec: Mapping[str, Any] | None = None, key: str | None = None) -> Scene:
+        """Build a scene from its config mapping merged onto the preset for ``name``."""
+        key = key or f"scenes.{name}"
+        if not isinstance(name, str) or not name:
+            raise SceneError(f"scene name {name!r} must be a non-empty string")
+        d = _merge(preset(name), spec or {}, key)
+        comp = Components(**{k: _bool(v, f"{key}.components.{k}") for k, v in d["components"].items()})
+        ips = d["images_per_set"]
+        if isinstance(ips, bool) or not isinstance(ips, int) or not 1 <= ips <= 1000:
+            raise SceneError(f"config key {key}.images_per_set = {ips!r} must be an integer in [1, 1000]")
+        mp = MultipoleSpec(**{p: _prior(d["multipoles"], p, f"{key}.multipoles") for p in ("a3", "phi3", "a4", "phi4")})
+        sh = ShearSpec(**{p: _prior(d["shear"], p, f"{key}.shear") for p in ("g1", "g2")})
+        return cls(name, comp, ips, _redshifts_spec(d["redshifts"], f"{key}.redshifts"),
+                   _source_spec(d["source"], f"{key}.source"), _main_lens_spec(d["main_lens"], f"{key}.main_lens"),
+                   mp, sh, _lens_light_spec(d["lens_light"], f"{key}.lens_light"),
+                   _subhalo_spec(d["subhalos"], f"{key}.subhalos"), _los_spec(d["los"], f"{key}.los"),
+                   _concentration_spec(d["concentration"], f"{key}.concentration"))
+
+
+# ----------------------------------------------------------------- sections of a scene
+def _redshifts_spec(r: Mapping[str, Any], k: str) -> Redshifts:
+    z = Redshifts(_prior(r, "z_lens", k), _prior(r, "z_source", k))
+    _within(z.z_lens, f"{k}.z_lens", 0.0, 10.0)
+    _within(z.z_source, f"{k}.z_source", 0.0, 10.0)
+    if z.z_source.support[0] <= z.z_lens.support[1]:
+        raise SceneError(
+            f"config key {k}: z_source support {z.z_source.support} must lie above the "
+            f"z_lens support {z.z_lens.support}"
+        )
+    return z
+
+
+def _source_spec(s: Mapping[str, Any], k: str) -> SourceSpec:
+    src = SourceSpec(
+        kind=_choice(s["kind"], SOURCE_KINDS, f"{k}.kind"),
+        split=_choice(s["split"], COSMOS_SPLITS, f"{k}.split"),
+        **{p: _prior(s, p, k) for p in ("x", "y", "rotation", "mag", "r_sersic", "n_sersic", "e1", "e2")},
+        multi_sersic=_multi_sersic(s["multi_sersic"], f"{k}.multi_sersic"),
+    )
+    _within(src.r_sersic, f"{k}.r_sersic", 1e-6, math.inf)
+    _within(src.n_sersic, f"{k}.n_sersic", 0.2, 10.0)
+    return src
+
+
+def _main_lens_spec(m: Mapping[str, Any], k: str) -> MainLensSpec:
+    main = MainLensSpec(**{p: _prior(m, p, k) for p in ("x", "y", "theta_e", "e1", "e2", "gamma")})
+    _within(main.theta_e, f"{k}.theta_e", 1e-6, math.inf)
+    _within(main.gamma, f"{k}.gamma", 1.0, 3.0)
+    for p in ("e1", "e2"):
+        _within(getattr(main, p), f"{k}.{p}", -1.0, 1.0)
+    return main
+
+
+def _lens_light_spec(ll: Mapping[str, Any], k: str) -> LensLightSpec:
+    light = LensLightSpec(**{p: _prior(ll, p, k) for p in ("mag", "r_sersic", "n_sersic", "e1", "e2")})
+    _within(light.r_sersic, f"{k}.r_sersic", 1e-6, math.inf)
+    _within(light.n_sersic, f"{k}.n_sersic", 0.2, 10.0)
+    return light
+
+
+def _subhalo_mass_prior(mass: Any, k: str) -> Prior:
+    if not isinstance(mass, Mapping) or set(mass) != {"slope", "m_min", "m_max"}:
+        raise SceneError(f"config key {k}.mass = {mass!r} must be a mapping with keys slope, m_min, m_max")
+    prior = Prior.from_config(
+        {"dist": "power_law", "slope": mass["slope"], "low": mass["m_min"], "high": mass["m_max"]}, f"{k}.mass"
+    )
+    _within(prior, f"{k}.mass", 1e3, 1e15)
+    return prior
+
+
+def _gamma_bounds(bounds: Any, k: str) -> tuple[float, float]:
+    if not (isinstance(bounds, (list, tuple)) and len(bounds) == 2):
+        raise SceneError(f"config key {k}.gamma_bounds = {bounds!r} must be a list [low, high]")
+    lo = _real(bounds[0], f"{k}.gamma_bounds[0]", 1.0, 3.0, lo_open=True, hi_open=True)
+    hi = _real(bounds[1], f"{k}.gamma_bounds[1]", 1.0, 3.0, lo_open=True, hi_open=True)
+    if lo >= hi:
+        raise SceneError(f"config key {k}.gamma_bounds = {bounds!r} needs low < high")
+    return lo, hi
+
+
+def _subhalo_spec(sub: Mapping[str, Any], k: str) -> SubhaloSpec:
+    count = _prior(sub, "count", k)
+    if count.dist not in ("uniform_int", "fixed") or count.support[0] < 0 or (
+        count.dist == "fixed" and count.support[0] != int(count.support[0])
+    ):
+        raise SceneError(
+            f"config key {k}.count must be a uniform_int prior or a fixed non-negative integer"
+        )
+    mass_prior = _subhalo_mass_prior(sub["mass"], k)
+    lo, hi = _gamma_bounds(sub["gamma_bounds"], k)
+    gamma = _within(_prior(sub, "gamma", k), f"{k}.gamma", lo, hi)
+    return SubhaloSpec(
+        count=count,
+        mass=mass_prior,
+        gamma=gamma,
+        gamma_scatter=_real(sub["gamma_scatter"], f"{k}.gamma_scatter", 0.0, 1.0),
+        gamma_bounds=(lo, hi),
+        e1=_within(_prior(sub, "e1", k), f"{k}.e1", -1.0, 1.0),
+        e2=_within(_prior(sub, "e2", k), f"{k}.e2", -1.0, 1.0),
+        profile=_choice(sub["profile"], SUBHALO_PROFILES, f"{k}.profile"),
+        placement=_choice(sub["placement"], PLACEMENTS, f"{k}.placement"),
+        threshold_fraction=_real(sub["threshold_fraction"], f"{k}.threshold_fraction", 0.0, 1.0, True, True),
+    )
+
+
+def _los_spec(lo_d: Mapping[str, Any], k: str) -> LosSpec:
+    los = LosSpec(
+        delta_los=_within(_prior(lo_d, "delta_los", k), f"{k}.delta_los", 0.0, 100.0),
+        profile=_choice(lo_d["profile"], LOS_PROFILES, f"{k}.profile"),
+        m_min=_real(lo_d["m_min"], f"{k}.m_min", 1e3, 1e15),
+        m_max=_real(lo_d["m_max"], f"{k}.m_max", 1e3, 1e15),
+    )
+    if los.m_min >= los.m_max:
+        raise SceneError(f"config key {k}.m_min = {los.m_min!r} must be < {k}.m_max = {los.m_max!r}")
+    return los
+
+
+def _concentration_spec(c: Mapping[str, Any], k: str) -> ConcentrationSpec:
+    mult = c["multipliers"]
+    if not isinstance(mult, (list, tuple)) or not mult:
+        raise SceneError(f"config key {k}.multipliers = {mult!r} must be a non-empty list of numbers > 0")
+    return ConcentrationSpec(
+        multipliers=tuple(_real(a, f"{k}.multipliers[{i}]", 0.0, 1e3, lo_open=True) for i, a in enumerate(mult)),
+        scatter_dex=_real(c["scatter_dex"], f"{k}.scatter_dex", 0.0, 1.0),
+        apply_to_los=_bool(c["apply_to_los"], f"{k}.apply_to_los"),
+    )
+
+
+def scenes_from_config(scenes: Mapping[str, Any] | None, key: str = "scenes") -> dict[str, Scene]:
+    """All scenes of the config's ``scenes`` block; the five presets are always present."""
+    scenes = dict(scenes or {})
+    if not all(isinstance(v, Mapping) or v is None for v in scenes.values()):
+        bad = [n for n, v in scenes.items() if not (isinstance(v, Mapping) or v is None)]
+        raise SceneError(f"config key {key}.{bad[0]} must be a mapping")
+    names = list(PRESETS) + [n for n in scenes if n not in PRESETS]
+    return {n: Scene.from_config(n, scenes.get(n) or {}, f"{key}.{n}") for n in names}
+
+
+# ------------------------------------------------------------------ scenes of a config
+def resolved_scene(config: Mapping[str, Any], name: str) -> tuple[Scene, dict[str, Any]]:
+    """The Scene ``name`` of the config and its complete spec (preset merged, JSON-able)."""
+    spec = (config.get("scenes") or {}).get(name) or {}
+    key = f"scenes.{name}"
+    merged = _merge(preset(name), spec, key)
+    return Scene.from_config(name, spec, key), merged
+
+
+def scene_multipliers(config: Mapping[str, Any], scene: Scene) -> tuple[float, ...] | None:
+    """Multipliers simulated for a CDM scene (None for scenes without concentrations)."""
+    if not scene.uses_concentration:
+        return None
+    mults = config["simulation"].get("multipliers")
+    return tuple(float(a) for a in (mults if mults else scene.concentration.multipliers))
+
+
+def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]:
+    """The config values that determine the images of a shard of ``scene`` (hashed).
+
+    ``config`` is validated first, so omitted keys count with their defaults."""
+    from subslope import config as _config
+
+    config = _config.validate(config)
+    _, spec = resolved_scene(config, scene)
+    sim = config["simulation"]
+    render = {k: v for k, v in sim["render"].items() if k not in ("batch_size", "device")}
+    return {
+        "seed": config["seed"],
+        "instrument": config["instrument"],
+        "cosmology": config["cosmology"],
+        "scene": spec,
+        "images_per_shard": sim["scenes"][scene]["images_per_shard"] if scene in sim["scenes"] else None,
+        "multipliers": sim["multipliers"],
+        "render": render,
+        "sources": sim["sources"],
+    }

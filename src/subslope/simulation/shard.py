@@ -1,0 +1,523 @@
+"""The forward simulator: one scene's parameters → noisy images → an HDF5 shard.
+
+:func:`simulate_shard` produces one shard file (layout in :mod:`subslope.io.shards`):
+
+1. **Seeds.** A numpy ``SeedSequence(entropy=config seed, spawn_key=(scene id, shard
+   [, multiplier index]))`` per shard (scene id: first 8 bytes of the SHA-256 of the
+   scene name), spawned into five independent streams: macro, sources, subhalos, LoS,
+   noise. Subhalos and LoS get one child stream *per image* and the noise one torch
+   seed per image (stored), so images do not depend on the batch size.
+2. **Macro parameters** of all images (:func:`subslope.simulation.macro.sample_macro`).
+3. **Sources**: a COSMOS galaxy of the scene's split per image (uniform), moved to the
+   image's z_source (:func:`subslope.io.cosmos.place_at_redshift`), optionally
+   renormalised to a drawn magnitude, rotated by the macro ``src_rotation``; or the
+   parametric Sérsic source of the macro draw.
+4. **Per batch** of ``simulation.render.batch_size`` images: the smooth model
+   (:func:`subslope.render.pipeline.render_smooth`) when subhalos go on the arc; subhalos
+   (:func:`subslope.simulation.subhalos.sample_subhalos`); LoS halos
+   (:func:`subslope.simulation.los.sample_los_batch` + :func:`subslope.simulation.los.los_profiles`); the
+   noise-free image (:func:`subslope.render.pipeline.render`); noise
+   (:func:`subslope.physics.instrument.add_noise` with the image's seed).
+
+:func:`rerender` rebuilds image ``i`` of a shard from its *stored* parameters (nothing is
+re-sampled) — bit for bit on the same device and dtype.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import logging
+import math
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from subslope._version import __version__
+from subslope.devices import pick_device
+from subslope import config as _config
+from subslope.simulation import macro as _macro
+from subslope.simulation.scenes import resolved_scene, scene_multipliers, simulation_sections
+from subslope.io import shards as _shards
+from subslope.physics.instrument import Instrument, add_noise, gaussian_psf, load_empirical_psf
+from subslope.physics.light.pixelated import pad_stamps
+from subslope.simulation.los import LosConfig, LosPopulation, los_profiles, sample_los_batch
+from subslope.io.cosmos import CosmosCatalog, CosmosCuts, normalize_to_magnitude, place_at_redshift, split_idents
+from subslope.simulation.subhalos import SubhaloPopulation, sample_subhalos
+
+__all__ = [
+    "STREAMS",
+    "scene_id",
+    "shard_seed_sequence",
+    "build_psf",
+    "build_instrument",
+    "render_settings",
+    "source_split",
+    "simulate_images",
+    "simulate_shard",
+    "stored_inputs",
+    "rerender",
+    "smooth_models",
+]
+
+log = logging.getLogger(__name__)
+
+#: Independent random streams of a shard, in spawn order.
+STREAMS = ("macro", "sources", "subhalos", "los", "noise")
+
+
+# ------------------------------------------------------------------------- naming, seeds
+def scene_id(name: str) -> int:
+    """Stable 64-bit integer of a scene name (first 8 bytes of its SHA-256)."""
+    return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
+
+
+def shard_seed_sequence(seed: int, scene: str, shard: int, multiplier_index: int | None = None) -> np.random.SeedSequence:
+    """The SeedSequence of one shard: entropy = global seed, spawn key = (scene id,
+    shard[, multiplier index])."""
+    key = (scene_id(scene), int(shard)) + (() if multiplier_index is None else (int(multiplier_index),))
+    return np.random.SeedSequence(entropy=int(seed), spawn_key=key)
+
+
+# ------------------------------------------------------------------------- set-up
+
+
+def build_instrument(config: Mapping[str, Any]) -> Instrument:
+    inst = config["instrument"]
+    return Instrument(
+        exposure_time=float(inst["exposure_time"]), ccd_gain=float(inst["ccd_gain"]),
+        read_noise=float(inst["read_noise"]), sky_brightness=float(inst["sky_brightness"]),
+        magnitude_zero_point=float(inst["zero_point"]), num_exposures=int(inst["num_exposures"]),
+        pixel_scale=float(inst["pixel_scale"]), psf_fwhm=float(inst["psf"]["fwhm"]),
+    )
+
+
+def build_psf(config: Mapping[str, Any], *, resources_dir: str | os.PathLike[str] | None = None) -> np.ndarray:
+    """PSF kernel (float64, sum 1) from ``instrument.psf``: the empirical file under the
+    resources folder, or the Gaussian fallback."""
+    inst = config["instrument"]
+    psf = inst["psf"]
+    if psf["source"] == "gaussian":
+        return gaussian_psf(psf["fwhm"], inst["pixel_scale"], dtype=torch.float64).numpy()
+    folder = Path(resources_dir if resources_dir is not None else config["data"]["resources_dir"])
+    path = folder / psf["file"]
+    if not path.is_file():
+        raise FileNotFoundError(f"PSF file {path} (instrument.psf.file under data.resources_dir) not found")
+    which = "mean" if psf["index"] is None else int(psf["index"])
+    return load_empirical_psf(path, which, supersampling=int(psf["supersampling"]), dtype=torch.float64).numpy()
+
+
+def render_settings(config: Mapping[str, Any]):
+    """:class:`subslope.render.settings.RenderSettings` of a validated config, on the
+    device this job renders on (``simulation.render.device`` resolved now)."""
+    from subslope.render.settings import RenderSettings
+
+    r = config["simulation"]["render"]
+    device = str(pick_device(r["device"], key="simulation.render.device"))
+    return RenderSettings.from_config(r, config["instrument"], device=device)
+
+
+def _settings_to_json(settings) -> dict[str, Any]:
+    out = {}
+    for f in dataclasses.fields(settings):
+        v = getattr(settings, f.name)
+        if isinstance(v, torch.dtype):
+            v = str(v).removeprefix("torch.")
+        elif isinstance(v, torch.device):
+            v = str(v)
+        out[f.name] = v
+    return out
+
+
+def _settings_from_json(d: Mapping[str, Any], device: str | None = None):
+    from subslope.render.settings import RenderSettings
+
+    names = {f.name for f in dataclasses.fields(RenderSettings)}
+    kw = {k: v for k, v in d.items() if k in names}
+    kw["dtype"] = getattr(torch, d["dtype"])
+    dev = device if device is not None else d.get("device")
+    kw["device"] = None if dev in (None, "None") else str(dev)
+    return RenderSettings(**kw)
+
+
+@functools.lru_cache(maxsize=8)
+def _catalog(folder: str) -> CosmosCatalog:
+    return CosmosCatalog.load(folder)
+
+
+def cosmos_folder(config: Mapping[str, Any]) -> Path:
+    return Path(config["data"]["resources_dir"]) / config["simulation"]["sources"]["folder"]
+
+
+def source_split(config: Mapping[str, Any], split: str) -> tuple[CosmosCatalog, np.ndarray]:
+    """The COSMOS catalogue (after cuts) and the IDENTs of ``split``."""
+    src = config["simulation"]["sources"]
+    catalog = _catalog(str(cosmos_folder(config)))
+    c = src["cuts"]
+    selected = catalog.select(CosmosCuts(c["mag_max"], c["min_stamp_side"], c["min_flux_radius"],
+                                         c["zphot_max"], tuple(c.get("exclude", ()))))
+    s = src["split"]
+    if s.get("ids"):
+        ids = np.asarray(s["ids"].get(split, []), dtype=np.int64)
+        missing = ids[~np.isin(ids, selected.idents)]
+        if missing.size:
+            raise ValueError(f"config key simulation.sources.split.ids.{split}: IDENT(s) {missing.tolist()} "
+                             "are not among the selected COSMOS galaxies")
+    else:
+        ids = split_idents(selected.idents, {k: s[k] for k in ("train", "validation", "test")}, s["salt"])[split]
+    if ids.size == 0:
+        raise ValueError(f"the COSMOS split {split!r} is empty (simulation.sources.split)")
+    return selected, ids
+
+
+def _place(catalog: CosmosCatalog, ident: int, z_source: float, zero_point: float, mag: float | None):
+    row = catalog.table.loc[catalog.table["ident"] == int(ident)].iloc[0]
+    sb, pix = place_at_redshift(catalog.stamp(int(ident)), float(row["pixel_scale"]), float(row["zphot"]),
+                                float(z_source), zero_point_out=zero_point)
+    if mag is not None and np.isfinite(mag):
+        sb = normalize_to_magnitude(sb, pix, float(mag), zero_point)
+    return sb, pix, float(row["zphot"])
+
+
+def _pixelated_sources(stamps: Sequence[np.ndarray], pixel_scales, pad_shape, settings):
+    """PixelatedSources padded to the fixed ``pad_shape`` (so an image does not depend on
+    which other stamps share its batch)."""
+    from subslope.render.pipeline import PixelatedSources
+
+    filler = np.zeros(tuple(int(v) for v in pad_shape))
+    padded, offsets = pad_stamps(list(stamps) + [filler], dtype=settings.dtype, device="cpu")
+    return PixelatedSources(stamps=padded[:-1], offsets=offsets[:-1],
+                            pixel_scale=np.asarray(pixel_scales, dtype=np.float64))
+
+
+def _concat_subhalos(pops: Sequence[SubhaloPopulation]) -> SubhaloPopulation:
+    first = pops[0]
+    kw = {"profile": first.profile}
+    for f in dataclasses.fields(SubhaloPopulation):
+        if f.name == "profile":
+            continue
+        vals = [getattr(p, f.name) for p in pops]
+        kw[f.name] = None if vals[0] is None else np.concatenate(vals)
+    return SubhaloPopulation(**kw)
+
+
+def _concat_los(pops: Sequence[LosPopulation]) -> LosPopulation:
+    kw = {"profile": pops[0].profile}
+    for f in dataclasses.fields(LosPopulation):
+        if f.name == "profile":
+            continue
+        vals = [getattr(p, f.name) for p in pops]
+        kw[f.name] = None if vals[0] is None else np.concatenate(vals)
+    return LosPopulation(**kw)
+
+
+def _pop_arrays(pop) -> dict[str, np.ndarray]:
+    return {f.name: getattr(pop, f.name) for f in dataclasses.fields(pop)
+            if f.name != "profile" and getattr(pop, f.name) is not None}
+
+
+# ------------------------------------------------------------------------- simulation
+def _draw_sources(config: Mapping[str, Any], sc, macro: Mapping[str, np.ndarray], rng: np.random.Generator,
+                  zero_point: float) -> tuple[dict[str, np.ndarray], list[np.ndarray], tuple[int, int] | None]:
+    """One COSMOS galaxy per image (uniform over the scene's split), placed at its
+    z_source: ``(per-image source records, stamps, padded stamp shape)``; nothing for a
+    parametric source."""
+    n = len(macro["z_source"])
+    if sc.source.kind != "cosmos":
+        return {}, [], None
+    catalog, ids = source_split(config, sc.source.split)
+    pick = ids[rng.integers(0, ids.size, n)]
+    renorm = config["simulation"]["sources"]["mag_renormalize"]
+    mags = rng.uniform(renorm[0], renorm[1], n) if renorm else None
+    pix = np.empty(n)
+    zphot = np.empty(n)
+    stamps = []
+    for i in range(n):
+        sb, pix[i], zphot[i] = _place(catalog, pick[i], macro["z_source"][i], zero_point,
+                                      None if mags is None else mags[i])
+        stamps.append(sb)
+    pad_shape = (int(catalog.table["ny"].max()), int(catalog.table["nx"].max()))
+    sources = {"ident": pick.astype(np.int64), "z_phot": zphot, "pixel_scale": pix}
+    if mags is not None:
+        sources["mag"] = mags
+    return sources, stamps, pad_shape
+
+
+@dataclasses.dataclass
+class _Draws:
+    """The per-image random streams of a shard and what the populations need."""
+
+    sub_streams: list
+    los_streams: list
+    los_config: LosConfig
+    npix: int
+    pixel_scale: float
+
+
+def _draw_populations(sc, macro: Mapping[str, np.ndarray], idx: range, smooth: np.ndarray | None,
+                      draws: _Draws) -> tuple[SubhaloPopulation | None, LosPopulation | None]:
+    """Subhalos (on the arc of the smooth models ``smooth`` when the scene places them
+    there) and line-of-sight halos of images ``idx``, each from its own stream."""
+    comp = sc.components
+    subs = lpop = None
+    if comp.subhalos:
+        parts = []
+        for j, i in enumerate(idx):
+            m_i = {k: v[i:i + 1] for k, v in macro.items()}
+            parts.append(sample_subhalos(sc, m_i, np.random.default_rng(draws.sub_streams[i]),
+                                         None if smooth is None else smooth[j:j + 1],
+                                         npix=draws.npix, pixel_scale=draws.pixel_scale))
+        subs = _concat_subhalos(parts)
+    if comp.los:
+        parts = []
+        for i in idx:
+            rng = np.random.default_rng(draws.los_streams[i])
+            m_i = {k: v[i:i + 1] for k, v in macro.items()}
+            batch = sample_los_batch(m_i["z_lens"], m_i["z_source"], m_i["theta_e"], m_i["gamma_ml"],
+                                     m_i["delta_los"], rng, draws.los_config)
+            parts.append(los_profiles(batch, sc, m_i, rng))
+        lpop = _concat_los(parts)
+    return subs, lpop
+
+
+def simulate_images(
+    config: Mapping[str, Any],
+    scene: str,
+    n: int,
+    seed_sequence: np.random.SeedSequence,
+    *,
+    multiplier: float | None = None,
+    progress: bool = False,
+    noise: bool = True,
+) -> dict[str, Any]:
+    """Simulate ``n`` images of ``scene`` in memory (the body of :func:`simulate_shard`).
+
+    Returns a dict with ``images`` (n, H, W) float32 numpy, ``params`` (per-image macro
+    parameters + ``noise_seed``), ``sources``, ``subhalos``, ``los`` (flat arrays +
+    ``counts``), ``psf``, ``settings`` (RenderSettings), ``timings`` (s) and profiles.
+    """
+    from subslope.render.pipeline import render, render_smooth
+
+    config = _config.validate(config)
+    sc, _ = resolved_scene(config, scene)
+    streams = dict(zip(STREAMS, seed_sequence.spawn(len(STREAMS))))
+    t0 = time.perf_counter()
+    macro = _macro.sample_macro(sc, n, np.random.default_rng(streams["macro"]), multiplier=multiplier)
+    settings = render_settings(config)
+    psf64 = build_psf(config)
+    psf = torch.as_tensor(psf64, dtype=settings.dtype, device=settings.device)
+    inst = build_instrument(config)
+    sources, stamps, pad_shape = _draw_sources(config, sc, macro, np.random.default_rng(streams["sources"]),
+                                               float(config["instrument"]["zero_point"]))
+    timing = {"setup": time.perf_counter() - t0, "smooth": 0.0, "sampling": 0.0, "render": 0.0, "noise": 0.0}
+
+    draws = _Draws(streams["subhalos"].spawn(n), streams["los"].spawn(n),
+                   LosConfig(m_min=sc.los.m_min, m_max=sc.los.m_max), int(config["instrument"]["npix"]),
+                   float(config["instrument"]["pixel_scale"]))
+    noise_seed = streams["noise"].generate_state(n, dtype=np.uint64)
+    comp = sc.components
+    bs = int(config["simulation"]["render"]["batch_size"])
+    images = np.empty((n, draws.npix, draws.npix), dtype=np.float32)
+    sub_pops: list[SubhaloPopulation] = []
+    los_pops: list[LosPopulation] = []
+    bar = _progress_bar(n, scene) if progress else None
+    for start in range(0, n, bs):
+        sl = slice(start, min(start + bs, n))
+        idx = range(sl.start, sl.stop)
+        m_b = {k: v[sl] for k, v in macro.items()}
+        src_b = _pixelated_sources(stamps[sl], sources["pixel_scale"][sl], pad_shape, settings) if stamps else None
+
+        t = time.perf_counter()
+        smooth = None
+        if comp.subhalos and sc.subhalos.placement == "arc" and np.any(m_b["n_sub"] > 0):
+            smooth = render_smooth(m_b, psf, settings, sources=src_b).detach().cpu().numpy()
+        timing["smooth"] += time.perf_counter() - t
+        t = time.perf_counter()
+        subs, lpop = _draw_populations(sc, macro, idx, smooth, draws)
+        sub_pops += [subs] if subs is not None else []
+        los_pops += [lpop] if lpop is not None else []
+        timing["sampling"] += time.perf_counter() - t
+        t = time.perf_counter()
+        clean = render(m_b, psf, settings, sources=src_b, subhalos=subs, los=lpop)
+        timing["render"] += time.perf_counter() - t
+        t = time.perf_counter()
+        _observe(images, clean, idx, noise_seed if noise else None, inst)
+        timing["noise"] += time.perf_counter() - t
+        if bar is not None:
+            bar.update(sl.stop - sl.start)
+    if bar is not None:
+        bar.close()
+
+    params = dict(macro)
+    params["noise_seed"] = noise_seed
+    empty = {"counts": np.zeros(n, dtype=np.int64)}
+    timing["total"] = time.perf_counter() - t0
+    return {
+        "images": images, "params": params, "sources": sources,
+        "subhalos": _pop_arrays(_concat_subhalos(sub_pops)) if comp.subhalos else empty,
+        "los": _pop_arrays(_concat_los(los_pops)) if comp.los else dict(empty),
+        "psf": psf64, "settings": settings, "timings": timing, "pad_shape": pad_shape,
+        "subhalo_profile": sc.subhalos.profile if comp.subhalos else "none",
+        "los_profile": sc.los.profile if comp.los else "none",
+    }
+
+
+def _observe(images: np.ndarray, clean, idx: range, noise_seed: np.ndarray | None, inst) -> None:
+    """Images ``idx`` with their detector noise (each from its own seed; none when
+    ``noise_seed`` is None), as float32 into ``images``."""
+    for j, i in enumerate(idx):
+        img = add_noise(clean[j], int(noise_seed[i]), instrument=inst) if noise_seed is not None else clean[j]
+        images[i] = img.detach().cpu().numpy().astype(np.float32)
+
+
+def _progress_bar(n: int, scene: str):
+    from tqdm import tqdm
+
+    return tqdm(total=n, desc=f"{scene} images", unit="img")
+
+
+def simulate_shard(
+    config: Mapping[str, Any],
+    scene: str,
+    shard: int,
+    out_path: str | os.PathLike[str],
+    *,
+    multiplier: float | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> Path:
+    """Simulate shard number ``shard`` of ``scene`` into ``out_path`` (see module doc).
+
+    ``multiplier``: concentration multiplier of a CDM scene (one of
+    :func:`scene_multipliers`). Refuses to overwrite an existing file unless
+    ``overwrite``. Returns the path.
+    """
+    config = _config.validate(config)
+    out_path = Path(out_path)
+    if out_path.exists() and not overwrite:
+        raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
+    counts = config["simulation"]["scenes"].get(scene)
+    if counts is None:
+        raise ValueError(f"scene {scene!r} has no entry in simulation.scenes (known: {sorted(config['simulation']['scenes'])})")
+    sc, spec = resolved_scene(config, scene)
+    n = int(counts["images_per_shard"])
+    if not 0 <= int(shard) < int(counts["n_shards"]):
+        raise ValueError(f"shard = {shard} must be in [0, {counts['n_shards']}) (simulation.scenes.{scene}.n_shards)")
+    mults = scene_multipliers(config, sc)
+    m_index = None
+    if mults is not None:
+        if multiplier is None:
+            raise ValueError(f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}")
+        matches = [k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)]
+        if not matches:
+            raise ValueError(f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}")
+        m_index, multiplier = matches[0], mults[matches[0]]
+    elif multiplier is not None:
+        raise ValueError(f"scene {scene!r} has no NFW/tNFW component: multiplier must be None")
+
+    ss = shard_seed_sequence(config["seed"], scene, shard, m_index)
+    log.info("simulating %s shard %d%s: %d images -> %s", scene, shard,
+             "" if multiplier is None else f" (a = {multiplier:g})", n, out_path)
+    out = simulate_images(config, scene, n, ss, multiplier=multiplier, progress=progress)
+    sections = simulation_sections(config, scene)
+    attrs = {
+        "scene": scene,
+        "scene_spec": spec,
+        "config": sections,
+        "config_hash": _shards.config_hash(sections),
+        "seed_entropy": str(ss.entropy),
+        "seed_spawn_key": list(ss.spawn_key),
+        "package_version": __version__,
+        "render_settings": _settings_to_json(out["settings"]),
+        "subhalo_profile": out["subhalo_profile"],
+        "los_profile": out["los_profile"],
+        "shard_index": int(shard),
+        "multiplier": None if multiplier is None else float(multiplier),
+        "cosmos_folder": str(cosmos_folder(config)) if out["sources"] else "",
+        "source_pad_shape": list(out["pad_shape"]) if out["pad_shape"] else [],
+    }
+    t = time.perf_counter()
+    path = _shards.write_shard(out_path, images=out["images"], params=out["params"], psf=out["psf"],
+                               subhalos=out["subhalos"], los=out["los"], sources=out["sources"] or None,
+                               attrs=attrs, overwrite=overwrite)
+    tm = out["timings"]
+    tm["write"] = time.perf_counter() - t
+    log.info("timings (s): %s; %.3f s per image; %d subhalos, %d LoS halos; file %.1f kB",
+             {k: round(v, 3) for k, v in tm.items()}, tm["total"] / max(n, 1),
+             int(out["subhalos"]["counts"].sum()), int(out["los"]["counts"].sum()), path.stat().st_size / 1e3)
+    return path
+
+
+# ------------------------------------------------------------------------- from a shard
+def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) -> dict[str, Any]:
+    """Renderer inputs of the images ``indices`` of an open shard, from stored values only.
+
+    ``cosmos``: COSMOS folder overriding the shard's ``cosmos_folder`` attribute.
+    Returns ``macro``, ``sources`` (PixelatedSources or None), ``subhalos``, ``los``,
+    ``psf`` (tensor), ``settings``, ``noise_seed``, ``instrument``.
+    """
+    a = shard.attrs
+    settings = settings or _settings_from_json(a["render_settings"])
+    idx = np.atleast_1d(np.arange(len(shard))[indices])
+    macro = {k: v[idx] for k, v in shard.params.items() if k != "noise_seed"}
+    cfg = a["config"]
+    zp = float(cfg["instrument"]["zero_point"])
+    src = None
+    if shard.sources:
+        s = shard.sources
+        catalog = _catalog(str(cosmos if cosmos is not None else a["cosmos_folder"]))
+        stamps, pixs = [], []
+        for i in idx:
+            z_s = shard.params["z_source"][i]
+            sb, pix, _ = _place(catalog, s["ident"][i], z_s, zp, s["mag"][i] if "mag" in s else None)
+            if not np.isclose(pix, s["pixel_scale"][i], rtol=1e-12):
+                raise _shards.ShardError(f"{shard.path}: COSMOS galaxy {s['ident'][i]} at z = {z_s} "
+                                         "does not reproduce the stored pixel scale (different catalogue?)")
+            stamps.append(sb)
+            pixs.append(s["pixel_scale"][i])
+        src = _pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
+    subs = None
+    if a["subhalo_profile"] != "none":
+        subs = SubhaloPopulation(profile=a["subhalo_profile"], **shard.ragged("subhalos", idx))
+    lpop = None
+    if a["los_profile"] != "none":
+        lpop = LosPopulation(profile=a["los_profile"], **shard.ragged("los", idx))
+    psf = torch.as_tensor(shard.psf, dtype=settings.dtype, device=settings.device)
+    inst = build_instrument(cfg)
+    return {"macro": macro, "sources": src, "subhalos": subs, "los": lpop, "psf": psf, "settings": settings,
+            "noise_seed": shard.params["noise_seed"][idx], "instrument": inst}
+
+
+def rerender(shard_path: str | os.PathLike[str], i: int, *, noise: bool = True, cosmos=None) -> np.ndarray:
+    """Image ``i`` of a shard re-rendered from its stored parameters (nothing re-sampled).
+
+    With ``noise=True`` the stored noise seed is used: on the same device and dtype the
+    result equals the stored image bit for bit. ``noise=False`` gives the noise-free image.
+    """
+    from subslope.render.pipeline import render
+
+    with _shards.open_shard(shard_path) as shard:
+        if not 0 <= int(i) < len(shard):
+            raise IndexError(f"image index {i} out of range for {shard_path} with {len(shard)} images")
+        inp = stored_inputs(shard, [int(i)], cosmos=cosmos)
+    clean = render(inp["macro"], inp["psf"], inp["settings"], sources=inp["sources"],
+                   subhalos=inp["subhalos"], los=inp["los"])[0]
+    img = add_noise(clean, int(inp["noise_seed"][0]), instrument=inp["instrument"]) if noise else clean
+    return img.detach().cpu().numpy().astype(np.float32)
+
+
+def smooth_models(shard_path: str | os.PathLike[str], indices, *, cosmos=None) -> np.ndarray:
+    """Noise-free smooth models (main lens + shear + multipoles + source, no lens light or
+    substructure) of images ``indices``, from stored parameters: (k, H, W) float64."""
+    from subslope.render.pipeline import render_smooth
+
+    with _shards.open_shard(shard_path) as shard:
+        inp = stored_inputs(shard, indices, cosmos=cosmos)
+    out = render_smooth(inp["macro"], inp["psf"], inp["settings"], sources=inp["sources"])
+    return out.detach().cpu().numpy().astype(np.float64)

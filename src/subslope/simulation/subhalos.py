@@ -1,0 +1,357 @@
+"""Numpy sampling of subhalo populations (no rendering).
+
+Given the per-image (macro) draw of :func:`subslope.simulation.macro.sample_macro`, this module
+draws each system's subhalos and converts them to lens-profile parameters:
+
+- masses: ``dN/dM ∝ M^slope`` on ``[m_min, m_max]`` (default −1.9 on [1e7, 1e10] M☉),
+  inverse-CDF sampling;
+- slopes (EPL): γ_i ~ N(γ, f·γ) truncated to ``[1.01, 2.99]`` (``f = 0.1``), exact
+  truncated-normal quantiles, γ the system's label;
+- ellipticities (EPL): e1, e2 from the scene priors (default U(−0.2, 0.2));
+- positions: on the arc (a random pixel of the smooth image brighter than
+  ``threshold_fraction`` × its maximum, plus a uniform offset within that pixel) or
+  uniformly over the whole field;
+- lens parameters: EPL amplitude θ_E^(γ−1) (:func:`subslope.physics.cosmology.epl_amp_from_m200`),
+  or NFW ``(R_s, α_Rs)`` with c200 = a · c_DM14(M, z_lens) · 10^N(0, σ_dex)
+  (:mod:`subslope.physics.concentration`) and, for tNFW, the truncation radius from the
+  projected distance to the lens centre.
+
+The population of a batch of ``B`` systems is *ragged*: flat arrays of length
+``N = counts.sum()`` ordered system by system, with ``counts`` (B,) and
+``offsets(counts)`` (B + 1,) delimiting system ``b`` as ``[offsets[b], offsets[b+1])``.
+Units: arcsec and M☉. Coordinates follow docs/design.md (pixel ``image[j, i]`` is
+centred on ``x_i = (i − (W−1)/2)·Δ``, ``y_j = (j − (H−1)/2)·Δ``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from scipy import stats
+
+from subslope.physics import concentration as _conc
+from subslope.physics import cosmology as _cosmo
+from subslope.simulation.priors import Prior
+from subslope.physics.instrument import NPIX, PIXEL_SCALE
+
+__all__ = [
+    "SubhaloPopulation",
+    "offsets",
+    "system_index",
+    "sample_masses",
+    "sample_subhalo_gammas",
+    "arc_candidates",
+    "place_on_arc",
+    "place_everywhere",
+    "epl_amplitudes",
+    "nfw_parameters",
+    "sample_subhalos",
+]
+
+#: Smallest projected distance (arcsec) used for the tNFW truncation radius, so that a
+#: subhalo exactly on the lens centre still gets a finite, positive r_t.
+R_SUB_FLOOR = 1e-3
+
+
+def _counts(counts) -> np.ndarray:
+    c = np.asarray(counts)
+    if c.ndim != 1 or (c.size and (not np.issubdtype(c.dtype, np.number) or np.any(c < 0) or np.any(c != np.floor(c)))):
+        raise ValueError(f"counts must be a 1-D array of non-negative integers, got {counts!r}")
+    return c.astype(np.int64)
+
+
+def offsets(counts) -> np.ndarray:
+    """Start indices ``(B + 1,)``: system ``b`` owns ``[offsets[b], offsets[b + 1])``."""
+    c = _counts(counts)
+    return np.concatenate([[0], np.cumsum(c)]).astype(np.int64)
+
+
+def system_index(counts) -> np.ndarray:
+    """System index of every subhalo, ``(N,)`` int64 (``repeat(arange(B), counts)``)."""
+    c = _counts(counts)
+    return np.repeat(np.arange(c.size, dtype=np.int64), c)
+
+
+@dataclass
+class SubhaloPopulation:
+    """Ragged subhalo population of ``B`` systems (flat arrays of length ``N``).
+
+    Fields that do not apply to ``profile`` are ``None``: ``gamma``, ``e1``, ``e2``,
+    ``amp`` for EPL only; ``c200``, ``r_s``, ``alpha_rs`` for NFW/tNFW; ``r_t`` for
+    tNFW. ``amp`` is θ_E^(γ−1) in arcsec^(γ−1); ``x``, ``y``, ``r_s``, ``alpha_rs``,
+    ``r_t`` in arcsec; ``mass`` = M200 in M☉.
+    """
+
+    profile: str
+    counts: np.ndarray
+    mass: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    gamma: np.ndarray | None = None
+    e1: np.ndarray | None = None
+    e2: np.ndarray | None = None
+    amp: np.ndarray | None = None
+    c200: np.ndarray | None = None
+    r_s: np.ndarray | None = None
+    alpha_rs: np.ndarray | None = None
+    r_t: np.ndarray | None = None
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return offsets(self.counts)
+
+    @property
+    def system(self) -> np.ndarray:
+        return system_index(self.counts)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """All array fields that are set (``counts`` included), keyed by field name."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "profile" and getattr(self, f.name) is not None}
+
+
+# ---------------------------------------------------------------------------- draws
+def sample_masses(n: int, rng: np.random.Generator, slope: float = -1.9, m_min: float = 1e7, m_max: float = 1e10) -> np.ndarray:
+    """``n`` masses (M☉) from ``dN/dM ∝ M^slope`` on ``[m_min, m_max]`` (inverse CDF)."""
+    prior = Prior.from_config({"dist": "power_law", "slope": slope, "low": m_min, "high": m_max}, "subhalos.mass")
+    return prior.sample(rng, int(n))
+
+
+def sample_subhalo_gammas(
+    gamma_system,
+    counts,
+    rng: np.random.Generator,
+    scatter: float = 0.1,
+    bounds: tuple[float, float] = (1.01, 2.99),
+) -> np.ndarray:
+    """Per-subhalo slopes γ_i ~ N(γ_b, scatter·γ_b) truncated to ``bounds``.
+
+    ``gamma_system`` (B,) are the systems' labels, ``counts`` (B,) their subhalo
+    numbers. Exact: the truncated-normal quantile of ``rng.random`` (scipy ``truncnorm``),
+    no rejection. ``scatter = 0`` gives γ_i = γ_b (clipped to the bounds).
+    """
+    c = _counts(counts)
+    g = np.asarray(gamma_system, dtype=np.float64)
+    if g.shape != c.shape:
+        raise ValueError(f"gamma_system shape {g.shape} must equal counts shape {c.shape}")
+    lo, hi = float(bounds[0]), float(bounds[1])
+    if not lo < hi:
+        raise ValueError(f"bounds = {bounds!r} must satisfy low < high")
+    if not 0 <= scatter < np.inf:
+        raise ValueError(f"scatter = {scatter!r} must be a finite number >= 0")
+    mu = np.repeat(g, c)
+    u = rng.random(mu.size)
+    if scatter == 0 or mu.size == 0:
+        return np.clip(mu, lo, hi)
+    sigma = scatter * np.abs(mu)
+    a, b = (lo - mu) / sigma, (hi - mu) / sigma
+    return np.clip(stats.truncnorm.ppf(u, a, b, loc=mu, scale=sigma), lo, hi)
+
+
+# ---------------------------------------------------------------------------- placement
+def _threshold_mask(images: np.ndarray, threshold_fraction: float) -> np.ndarray:
+    if not 0.0 < threshold_fraction < 1.0:
+        raise ValueError(f"threshold_fraction = {threshold_fraction!r} must lie in (0, 1)")
+    peak = images.reshape(images.shape[0], -1).max(axis=1)
+    return images > (threshold_fraction * peak)[:, None, None]
+
+
+def arc_candidates(smooth_image, threshold_fraction: float = 0.2) -> np.ndarray:
+    """Flat (row-major) indices of the pixels brighter than ``threshold_fraction`` × max.
+
+    ``smooth_image`` (H, W) is the image of the smooth model (main lens, shear,
+    multipoles and source; no lens light, no substructure). Empty when the image has no
+    positive pixel.
+    """
+    img = np.asarray(smooth_image, dtype=np.float64)
+    if img.ndim != 2:
+        raise ValueError(f"smooth_image must be 2-D (H, W), got shape {img.shape}")
+    return np.flatnonzero(_threshold_mask(img[None], threshold_fraction)[0])
+
+
+def _pixel_centres(flat: np.ndarray, h: int, w: int, pixel_scale: float):
+    j, i = np.divmod(flat, w)
+    return (i - (w - 1) / 2.0) * pixel_scale, (j - (h - 1) / 2.0) * pixel_scale
+
+
+def place_on_arc(
+    smooth_images,
+    counts,
+    rng: np.random.Generator,
+    pixel_scale: float = PIXEL_SCALE,
+    threshold_fraction: float = 0.2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (arcsec) of subhalos on the bright pixels of each smooth image.
+
+    Each subhalo of system ``b`` takes a uniformly chosen candidate pixel of
+    ``smooth_images[b]`` (see :func:`arc_candidates`) and a uniform offset within it.
+    Vectorised over systems and subhalos. Returns flat ``x, y`` of length
+    ``counts.sum()``. Raises ``ValueError`` if a system with subhalos has no candidate.
+    """
+    imgs = np.asarray(smooth_images, dtype=np.float64)
+    c = _counts(counts)
+    if imgs.ndim != 3 or imgs.shape[0] != c.size:
+        raise ValueError(f"smooth_images must have shape (B, H, W) with B = len(counts) = {c.size}, got {imgs.shape}")
+    if not pixel_scale > 0:
+        raise ValueError(f"pixel_scale = {pixel_scale!r} must be > 0 arcsec")
+    _, h, w = imgs.shape
+    mask = _threshold_mask(imgs, threshold_fraction).reshape(c.size, -1)
+    n_cand = mask.sum(axis=1)
+    empty = (n_cand == 0) & (c > 0)
+    if np.any(empty):
+        raise ValueError(
+            f"smooth_images[{int(np.flatnonzero(empty)[0])}] has no pixel above threshold_fraction "
+            f"{threshold_fraction} of its maximum (blank image?) but subhalos must be placed on it"
+        )
+    # Candidate pixel indices first in each row (stable: ascending pixel index).
+    order = np.argsort(~mask, axis=1, kind="stable")
+    sys = system_index(c)
+    pick = np.minimum((rng.random(sys.size) * n_cand[sys]).astype(np.int64), n_cand[sys] - 1)
+    flat = order[sys, pick]
+    x, y = _pixel_centres(flat, h, w, pixel_scale)
+    off = rng.uniform(-0.5, 0.5, size=(2, sys.size)) * pixel_scale
+    return x + off[0], y + off[1]
+
+
+def place_everywhere(counts, rng: np.random.Generator, npix: int = NPIX, pixel_scale: float = PIXEL_SCALE) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (arcsec) uniform over the ``npix × npix`` field of the image."""
+    c = _counts(counts)
+    if isinstance(npix, bool) or not isinstance(npix, (int, np.integer)) or npix < 1:
+        raise ValueError(f"npix = {npix!r} must be a positive integer")
+    if not pixel_scale > 0:
+        raise ValueError(f"pixel_scale = {pixel_scale!r} must be > 0 arcsec")
+    half = 0.5 * npix * pixel_scale
+    xy = rng.uniform(-half, half, size=(2, int(c.sum())))
+    return xy[0], xy[1]
+
+
+# ---------------------------------------------------------------------------- conversions
+def _per_system(counts, z_lens, z_source):
+    c = _counts(counts)
+    zl = np.broadcast_to(np.asarray(z_lens, dtype=np.float64), c.shape)
+    zs = np.broadcast_to(np.asarray(z_source, dtype=np.float64), c.shape)
+    return c, offsets(c), zl, zs
+
+
+def epl_amplitudes(mass, gamma, counts, z_lens, z_source, cosmo=None) -> np.ndarray:
+    """EPL amplitudes θ_E^(γ−1) (arcsec^(γ−1)) of a ragged population.
+
+    ``mass``, ``gamma`` flat (N,); ``counts``, ``z_lens``, ``z_source`` per system (B,).
+    One call of :func:`subslope.physics.cosmology.epl_amp_from_m200` per system, so that its
+    distances are evaluated (and cached) at scalar redshifts.
+    """
+    c, off, zl, zs = _per_system(counts, z_lens, z_source)
+    mass = np.asarray(mass, dtype=np.float64)
+    gamma = np.asarray(gamma, dtype=np.float64)
+    out = np.empty_like(mass)
+    for b in np.flatnonzero(c):
+        s = slice(off[b], off[b + 1])
+        out[s] = _cosmo.epl_amp_from_m200(mass[s], gamma[s], float(zl[b]), float(zs[b]), cosmo)
+    return out
+
+
+def nfw_parameters(
+    mass,
+    counts,
+    z_lens,
+    z_source,
+    rng: np.random.Generator,
+    multiplier=1.0,
+    scatter_dex: float = 0.1,
+    r_sub=None,
+    cosmo=None,
+) -> dict[str, np.ndarray]:
+    """NFW (and tNFW) lens parameters of a ragged population.
+
+    c200 = ``multiplier`` · c_DM14(M200, z_lens) · 10^N(0, ``scatter_dex``)
+    (``multiplier`` scalar or per system (B,)); ``(R_s, α_Rs)`` from
+    :func:`subslope.physics.cosmology.nfw_params_from_m200_c`. With ``r_sub`` (flat (N,),
+    projected distance to the lens centre in arcsec, floored at ``R_SUB_FLOOR``) the
+    tNFW truncation radius ``r_t`` (arcsec) of :mod:`subslope.physics.concentration` is added.
+    Returns a dict with ``c200``, ``r_s``, ``alpha_rs`` [, ``r_t``].
+    """
+    c, off, zl, zs = _per_system(counts, z_lens, z_source)
+    mass = np.asarray(mass, dtype=np.float64)
+    sys = system_index(c)
+    mult = np.broadcast_to(np.asarray(multiplier, dtype=np.float64), c.shape)
+    if np.any(~np.isfinite(mult) | (mult <= 0)):
+        raise ValueError(f"multiplier = {multiplier!r} must be finite and > 0")
+    c200 = mult[sys] * _conc.sample_c200(mass, zl[sys], rng, multiplier=1.0, scatter_dex=scatter_dex) if mass.size else mass.copy()
+    r_s, alpha = np.empty_like(mass), np.empty_like(mass)
+    r_t = None if r_sub is None else np.empty_like(mass)
+    for b in np.flatnonzero(c):
+        s = slice(off[b], off[b + 1])
+        r_s[s], alpha[s] = _cosmo.nfw_params_from_m200_c(mass[s], c200[s], float(zl[b]), float(zs[b]), cosmo)
+        if r_t is not None:
+            r = np.maximum(np.asarray(r_sub, dtype=np.float64)[s], R_SUB_FLOOR)
+            r_t[s] = _conc.truncation_radius_arcsec(mass[s], r, float(zl[b]), cosmo)
+    out = {"c200": c200, "r_s": r_s, "alpha_rs": alpha}
+    if r_t is not None:
+        out["r_t"] = r_t
+    return out
+
+
+# ---------------------------------------------------------------------------- driver
+def sample_subhalos(
+    scene,
+    macro: dict[str, np.ndarray],
+    rng: np.random.Generator,
+    smooth_images=None,
+    *,
+    npix: int = 100,
+    pixel_scale: float = PIXEL_SCALE,
+    cosmo=None,
+) -> SubhaloPopulation:
+    """Subhalo population of the systems of one macro draw.
+
+    Parameters
+    ----------
+    scene : subslope.simulation.scenes.Scene
+    macro : dict
+        Output of :func:`subslope.simulation.macro.sample_macro` (``n_sub``, ``gamma_sub``,
+        ``z_lens``, ``z_source``, ``lens_x``, ``lens_y``, ``c_multiplier`` as needed).
+        Without ``n_sub`` (subhalos off) every count is 0.
+    rng : numpy.random.Generator
+    smooth_images : array (B, H, W), optional
+        Smooth-model images; required for ``placement='arc'`` when any count > 0.
+    npix, pixel_scale : int, float
+        Field for ``placement='everywhere'`` (and pixel size for ``'arc'``).
+
+    Draw order (fixed): masses, γ_i (EPL), e1, e2 (EPL), positions, c200 scatter.
+    """
+    spec = scene.subhalos
+    n_img = macro["z_lens"].shape[0]
+    counts = _counts(macro["n_sub"]) if "n_sub" in macro else np.zeros(n_img, dtype=np.int64)
+    n = int(counts.sum())
+    mass = spec.mass.sample(rng, n)
+    pop = {"profile": spec.profile, "counts": counts, "mass": mass}
+    if spec.profile == "epl":
+        if "gamma_sub" not in macro:
+            raise ValueError("macro has no 'gamma_sub' (label γ) but the scene's subhalos are EPL")
+        pop["gamma"] = sample_subhalo_gammas(macro["gamma_sub"], counts, rng, spec.gamma_scatter, spec.gamma_bounds)
+        pop["e1"] = spec.e1.sample(rng, n)
+        pop["e2"] = spec.e2.sample(rng, n)
+    if spec.placement == "arc":
+        if smooth_images is None:
+            if n:
+                raise ValueError(f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)")
+            x = y = np.zeros(0)
+        else:
+            x, y = place_on_arc(smooth_images, counts, rng, pixel_scale, spec.threshold_fraction)
+    else:
+        x, y = place_everywhere(counts, rng, npix, pixel_scale)
+    pop["x"], pop["y"] = x, y
+    if spec.profile == "epl":
+        pop["amp"] = epl_amplitudes(mass, pop["gamma"], counts, macro["z_lens"], macro["z_source"], cosmo)
+    else:
+        sys = system_index(counts)
+        r_sub = None
+        if spec.profile == "tnfw":
+            r_sub = np.hypot(x - macro["lens_x"][sys], y - macro["lens_y"][sys])
+        mult = macro.get("c_multiplier", np.ones(n_img))
+        pop.update(
+            nfw_parameters(mass, counts, macro["z_lens"], macro["z_source"], rng, mult,
+                           scene.concentration.scatter_dex, r_sub, cosmo)
+        )
+    return SubhaloPopulation(**pop)
+

@@ -1,1 +1,0 @@
-"""Source-light catalogues: real COSMOS galaxies (default) and parametric alternatives."""

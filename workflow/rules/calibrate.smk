@@ -1,0 +1,51 @@
+# Stage: calibrate. The threshold tau_N of every stack size N (one job per N) and their
+# held-out coverage (subslope.stages.calibrate; statistics in subslope.stats).
+
+rule calibrate_threshold:
+    input:
+        profiles=calibration_inputs,
+    output:
+        npz="results/calibrate_threshold/N{n}.npz",
+    params:
+        level=CAL["level"],
+        seed=derived_seed("calibration"),
+        heldout_fraction=CAL["heldout_fraction"],
+    log:
+        "logs/calibrate_threshold/N{n}.log",
+    benchmark:
+        "results/benchmarks/calibrate_threshold/N{n}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/calibrate_threshold.py"
+
+
+rule summarize_coverage:
+    input:
+        npz=expand(rules.calibrate_threshold.output.npz, n=CAL_N),
+    output:
+        csv="results/summarize_coverage/calibration.csv",
+        json="results/summarize_coverage/thresholds.json",
+        pdf="results/figures/coverage.pdf",
+        png=report(
+            "results/figures/coverage.png",
+            caption="../report/coverage.rst",
+            category="Calibration",
+        ),
+    params:
+        run_name=RUN,
+    log:
+        "logs/summarize_coverage.log",
+    benchmark:
+        "results/benchmarks/summarize_coverage.tsv"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/summarize_coverage.py"

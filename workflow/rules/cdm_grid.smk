@@ -1,0 +1,37 @@
+# Stage: cdm_grid. Stack MLEs of the simulated CDM sets per concentration multiplier,
+# their bands and figure 4 (subslope.stages.cdm_grid).
+
+rule measure_cdm_grid:
+    input:
+        profiles=cdm_inputs(),
+    output:
+        npz="results/measure_cdm_grid/cdm_grid.npz",
+        csv="results/measure_cdm_grid/cdm_grid.csv",
+        pdf="results/figures/fig4_concentration_grid.pdf",
+        png=report(
+            "results/figures/fig4_concentration_grid.png",
+            caption="../report/fig4_concentration_grid.rst",
+            category="CDM",
+        ),
+    params:
+        # [scene, multiplier, profiles file] of every CDM shard
+        groups=[
+            [job["scene"], job["multiplier"], profile_path(job)]
+            for job in SHARD_JOBS
+            if job["scene"] in (CDM["nfw_scene"], CDM["tnfw_scene"])
+        ],
+        nfw_scene=CDM["nfw_scene"],
+        tnfw_scene=CDM["tnfw_scene"],
+        band=CDM["band"],
+        run_name=RUN,
+    log:
+        "logs/measure_cdm_grid.log",
+    benchmark:
+        "results/benchmarks/measure_cdm_grid.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/measure_cdm_grid.py"

@@ -1,0 +1,44 @@
+# Stage: hst. Profiles, intervals and figures 5-6 of the real HST lenses
+# (subslope.stages.hst).
+
+rule analyze_hst:
+    input:
+        hst=rules.fetch_data.output.hst,
+        model=rules.train_estimator.output.model,
+        thresholds=rules.summarize_coverage.output.json,
+        cdm=rules.measure_cdm_grid.output.csv if STAGE_ON["cdm_grid"] else [],
+    output:
+        h5="results/analyze_hst/profiles.h5",
+        csv="results/analyze_hst/intervals.csv",
+        fig5_pdf="results/figures/fig5_hst_profiles.pdf",
+        fig5_png=report(
+            "results/figures/fig5_hst_profiles.png",
+            caption="../report/fig5_hst_profiles.rst",
+            category="HST",
+        ),
+        fig6_pdf="results/figures/fig6_hst_combined.pdf",
+        fig6_png=report(
+            "results/figures/fig6_hst_combined.png",
+            caption="../report/fig6_hst_combined.rst",
+            category="HST",
+        ),
+    params:
+        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
+        hst=config["hst"],
+        gamma_grid=GRID,
+        pixel_scale=config["instrument"]["pixel_scale"],
+        device=config["inference"]["device"],
+        nfw_scene=CDM["nfw_scene"],
+        tnfw_scene=CDM["tnfw_scene"],
+        run_name=RUN,
+    log:
+        "logs/analyze_hst.log",
+    benchmark:
+        "results/benchmarks/analyze_hst.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    conda:
+        "../envs/subslope.yaml"
+    script:
+        "../scripts/analyze_hst.py"
