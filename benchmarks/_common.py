@@ -24,17 +24,26 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import render_speed as _rs  # noqa: E402  (reuse: PSF, error metrics, reference settings)
 
-from subslope.simulation import los as los_mod  # noqa: E402
 from subslope.render import pipeline as R  # noqa: E402
+from subslope.simulation import los as los_mod  # noqa: E402
 from subslope.simulation import scenes  # noqa: E402
-from subslope.simulation.macro import sample_macro  # noqa: E402
 from subslope.simulation import subhalos as S  # noqa: E402
+from subslope.simulation.macro import sample_macro  # noqa: E402
 
 psf_kernel = _rs.psf_kernel
 image_errors = _rs.image_errors
 reference_settings = _rs.reference_settings
 
-__all__ = ["Batch", "make_scene", "one_image", "psf_kernel", "image_errors", "reference_settings", "machine_info", "load"]
+__all__ = [
+    "Batch",
+    "make_scene",
+    "one_image",
+    "psf_kernel",
+    "image_errors",
+    "reference_settings",
+    "machine_info",
+    "load",
+]
 
 
 def load() -> str:
@@ -53,6 +62,7 @@ def machine_info() -> dict:
         pass
     try:
         import lenstronomy
+
         lv = lenstronomy.__version__
     except ImportError:  # pragma: no cover
         lv = "not installed"
@@ -60,9 +70,16 @@ def machine_info() -> dict:
         up = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     except OSError:  # pragma: no cover
         up = load()
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
-            "torch": torch.__version__, "lenstronomy": lv, "uptime": up,
-            "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available()}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "lenstronomy": lv,
+        "uptime": up,
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.is_available(),
+    }
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -84,9 +101,17 @@ class Batch:
         return R.render(self.macro, self.psf, settings, subhalos=self.subhalos, los=self.los)
 
 
-def make_scene(kind: str = "train", n_img: int = 2, n_sub: int = 1500, with_los: bool = True, seed: int = 0,
-               gamma_label: float | None = None, delta_los: float | None = 1.0, multiplier: float = 1.0,
-               name: str | None = None) -> Batch:
+def make_scene(
+    kind: str = "train",
+    n_img: int = 2,
+    n_sub: int = 1500,
+    with_los: bool = True,
+    seed: int = 0,
+    gamma_label: float | None = None,
+    delta_los: float | None = 1.0,
+    multiplier: float = 1.0,
+    name: str | None = None,
+) -> Batch:
     """``n_img`` images of scene preset ``kind`` ('train' | 'nfw' | 'tnfw') with N_sub fixed.
 
     Sérsic source (the COSMOS stamps are a separate knob), lens light, multipoles and
@@ -95,7 +120,11 @@ def make_scene(kind: str = "train", n_img: int = 2, n_sub: int = 1500, with_los:
     :func:`subslope.simulation.los.los_profiles` with δ_los fixed (1.0 = the mean of the prior
     U(0, 2); None draws it). ``gamma_label`` fixes the per-system label γ (train).
     """
-    over = {"source": {"kind": "sersic"}, "components": {"los": bool(with_los)}, "images_per_set": 1}
+    over = {
+        "source": {"kind": "sersic"},
+        "components": {"los": bool(with_los)},
+        "images_per_set": 1,
+    }
     scene = scenes.Scene.from_config(kind, over)
     rng = np.random.default_rng(seed)
     cdm = kind in ("nfw", "tnfw")
@@ -110,8 +139,14 @@ def make_scene(kind: str = "train", n_img: int = 2, n_sub: int = 1500, with_los:
     subs = S.sample_subhalos(scene, macro, rng, smooth_images=smooth) if n_sub > 0 else None
     los = None
     if with_los:
-        b = los_mod.sample_los_batch(macro["z_lens"], macro["z_source"], macro["theta_e"], macro["gamma_ml"],
-                                     macro["delta_los"], rng)
+        b = los_mod.sample_los_batch(
+            macro["z_lens"],
+            macro["z_source"],
+            macro["theta_e"],
+            macro["gamma_ml"],
+            macro["delta_los"],
+            rng,
+        )
         los = los_mod.los_profiles(b, scene, macro, rng)
     if name is None:
         name = f"{kind} N_sub={n_sub}" + (" +LoS" if with_los else "")
@@ -124,17 +159,21 @@ def _slice_pop(pop, i: int):
     counts = np.asarray(pop.counts)
     off = np.concatenate([[0], np.cumsum(counts)])
     n = int(counts.sum())
-    upd = {"counts": counts[i:i + 1]}
+    upd = {"counts": counts[i : i + 1]}
     for f in dataclasses.fields(pop):
         v = getattr(pop, f.name)
         if f.name != "counts" and isinstance(v, np.ndarray) and v.shape[:1] == (n,):
-            upd[f.name] = v[off[i]:off[i + 1]]
+            upd[f.name] = v[off[i] : off[i + 1]]
     return dataclasses.replace(pop, **upd)
 
 
 def one_image(batch: Batch, i: int) -> Batch:
     """Image ``i`` of a batch as a batch of one."""
-    macro = {k: v[i:i + 1] for k, v in batch.macro.items()}
-    return Batch(f"{batch.name} [{i}]", macro, batch.psf, _slice_pop(batch.subhalos, i), _slice_pop(batch.los, i))
-
-
+    macro = {k: v[i : i + 1] for k, v in batch.macro.items()}
+    return Batch(
+        f"{batch.name} [{i}]",
+        macro,
+        batch.psf,
+        _slice_pop(batch.subhalos, i),
+        _slice_pop(batch.los, i),
+    )

@@ -72,19 +72,31 @@ KNOBS: list[tuple[str, dict]] = [
     ("supersample=2", {"supersample": 2}),
     ("supersample=3", {"supersample": 3}),
     ("n_terms=6, split_tolerance=4e-5", {"n_terms": 6, "split_tolerance": 4e-5}),
-    ("float64, population=direct, n_terms=14, n_terms_main=20",
-     {"dtype": F64, "population": "direct", "n_terms": 14, "n_terms_main": 20}),
+    (
+        "float64, population=direct, n_terms=14, n_terms_main=20",
+        {"dtype": F64, "population": "direct", "n_terms": 14, "n_terms_main": 20},
+    ),
     ("default (again, last: load drift check)", {}),
 ]
-INTERP = [("source_interpolation=bilinear (default)", {}),
-          ("source_interpolation=bicubic", {"source_interpolation": "bicubic"}),
-          ("source_interpolation=nearest", {"source_interpolation": "nearest"})]
+INTERP = [
+    ("source_interpolation=bilinear (default)", {}),
+    ("source_interpolation=bicubic", {"source_interpolation": "bicubic"}),
+    ("source_interpolation=nearest", {"source_interpolation": "nearest"}),
+]
 
 
 def ref_of(settings: R.RenderSettings) -> R.RenderSettings:
-    return dataclasses.replace(settings, dtype=F64, n_terms=30, n_terms_main=30, compile="off", chunk_members=16,
-                               convolution="direct", population="direct",
-                               source_interpolation=settings.source_interpolation)
+    return dataclasses.replace(
+        settings,
+        dtype=F64,
+        n_terms=30,
+        n_terms_main=30,
+        compile="off",
+        chunk_members=16,
+        convolution="direct",
+        population="direct",
+        source_interpolation=settings.source_interpolation,
+    )
 
 
 def fresh_compile() -> None:
@@ -111,7 +123,9 @@ def run(args) -> list[dict]:
     hi = None
     if args.k_ref:
         t0 = time.perf_counter()
-        hi = batch.render(dataclasses.replace(ref_of(base), supersample=args.k_ref, chunk_members=8))
+        hi = batch.render(
+            dataclasses.replace(ref_of(base), supersample=args.k_ref, chunk_members=8)
+        )
         print(f"k={args.k_ref} float64 reference: {time.perf_counter() - t0:.0f} s", flush=True)
     for label, over in KNOBS:
         s = dataclasses.replace(base, **over)
@@ -120,10 +134,17 @@ def run(args) -> list[dict]:
         fresh_compile()
         img = batch.render(s)  # warm-up / compile
         batch.render(s)  # second warm-up: graphs specialised on first sight of a shape
-        med, mn = time_it(lambda: batch.render(s), args.repeats, batch.n)
+        med, mn = time_it(lambda s=s: batch.render(s), args.repeats, batch.n)
         es, el = C.image_errors(img, refs[s.supersample])
-        row = {"setting": label, "scene": batch.name, "s_per_img": med, "s_min": mn, "max_sigma": es, "rel_l2": el,
-               "load": C.load()}
+        row = {
+            "setting": label,
+            "scene": batch.name,
+            "s_per_img": med,
+            "s_min": mn,
+            "max_sigma": es,
+            "rel_l2": el,
+            "load": C.load(),
+        }
         if hi is not None and (label == "default" or "supersample" in label):
             row["max_sigma_vs_kref"], row["rel_l2_vs_kref"] = C.image_errors(img, hi)
         rows.append(row)
@@ -136,15 +157,30 @@ def run(args) -> list[dict]:
             return rows
         for label, over in INTERP:
             s = dataclasses.replace(base, **over)
-            ref = R.render(cb.macro, cb.psf, ref_of(dataclasses.replace(s, source_interpolation="bicubic")),
-                           sources=cb.sources, subhalos=cb.subhalos, los=cb.los)
-            fn = lambda: R.render(cb.macro, cb.psf, s, sources=cb.sources, subhalos=cb.subhalos, los=cb.los)  # noqa
+            ref = R.render(
+                cb.macro,
+                cb.psf,
+                ref_of(dataclasses.replace(s, source_interpolation="bicubic")),
+                sources=cb.sources,
+                subhalos=cb.subhalos,
+                los=cb.los,
+            )
+            fn = lambda cb=cb, s=s: R.render(
+                cb.macro, cb.psf, s, sources=cb.sources, subhalos=cb.subhalos, los=cb.los
+            )
             fresh_compile()
             img = fn()
             med, mn = time_it(fn, args.repeats, len(cb.macro["z_lens"]))
             es, el = C.image_errors(img, ref)
-            row = {"setting": label, "scene": "train N_sub=1500 +LoS, COSMOS source (ref: bicubic f64)",
-                   "s_per_img": med, "s_min": mn, "max_sigma": es, "rel_l2": el, "load": C.load()}
+            row = {
+                "setting": label,
+                "scene": "train N_sub=1500 +LoS, COSMOS source (ref: bicubic f64)",
+                "s_per_img": med,
+                "s_min": mn,
+                "max_sigma": es,
+                "rel_l2": el,
+                "load": C.load(),
+            }
             rows.append(row)
             print(fmt(row), flush=True)
     return rows
@@ -161,7 +197,11 @@ class _CosmosBatch:
 
 def cosmos_batch(args) -> _CosmosBatch:
     b = C.make_scene("train", args.n_img, 1500, True, seed=args.seed, delta_los=1.0)
-    macro = {k: v for k, v in b.macro.items() if not k.startswith("src_") or k in ("src_x", "src_y", "src_rotation")}
+    macro = {
+        k: v
+        for k, v in b.macro.items()
+        if not k.startswith("src_") or k in ("src_x", "src_y", "src_rotation")
+    }
     src = C._rs.cosmos_sources(macro, np.random.default_rng(args.seed))
     return _CosmosBatch(macro, b.psf, src, b.subhalos, b.los)
 
@@ -170,8 +210,11 @@ def fmt(r: dict) -> str:
     extra = ""
     if "max_sigma_vs_kref" in r:
         extra = f"{r['max_sigma_vs_kref']:.2e} / {r['rel_l2_vs_kref']:.1e}"
-    return (f"| {r['setting']} | {r['s_per_img']:.4f} ({r['s_min']:.4f}) | {r['max_sigma']:.2e} | {r['rel_l2']:.1e} | "
-            f"{extra} | {r['load']} |")
+    return (
+        f"| {r['setting']} | {r['s_per_img']:.4f} ({r['s_min']:.4f}) | {r['max_sigma']:.2e} | "
+        f"{r['rel_l2']:.1e} | "
+        f"{extra} | {r['load']} |"
+    )
 
 
 def pareto(points: np.ndarray) -> np.ndarray:
@@ -188,14 +231,17 @@ def pareto(points: np.ndarray) -> np.ndarray:
 def plot(rows: list[dict], path: str) -> None:
     import matplotlib
     import matplotlib.ticker
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rows = [r for r in rows if "COSMOS" not in r["scene"]]
     t = np.array([r["s_per_img"] for r in rows])
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
-    for ax, key, budget, lab in ((axes[0], "max_sigma", 0.1, r"max $|\Delta|/\sigma_{\rm noise}$"),
-                                 (axes[1], "rel_l2", 1e-3, "relative L2")):
+    for ax, key, budget, lab in (
+        (axes[0], "max_sigma", 0.1, r"max $|\Delta|/\sigma_{\rm noise}$"),
+        (axes[1], "rel_l2", 1e-3, "relative L2"),
+    ):
         e = np.maximum(np.array([r[key] for r in rows]), 1e-16)
         ax.scatter(t, e, s=14, c="0.5", zorder=2)
         f = pareto(np.stack([t, e], 1))
@@ -204,18 +250,32 @@ def plot(rows: list[dict], path: str) -> None:
         ax.scatter(t[0], e[0], s=160, marker="*", c="C3", zorder=4, label="default")
         ax.axhline(budget, c="C3", ls="--", lw=0.8, label=f"budget {budget:g}")
         for ti, ei, r in zip(t, e, rows):
-            ax.annotate(r["setting"].replace("supersample", "k").replace("n_terms", "nt"), (ti, ei), fontsize=5.5,
-                        xytext=(3, 2), textcoords="offset points")
+            ax.annotate(
+                r["setting"].replace("supersample", "k").replace("n_terms", "nt"),
+                (ti, ei),
+                fontsize=5.5,
+                xytext=(3, 2),
+                textcoords="offset points",
+            )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-        ax.set_xticks([v for v in (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0) if t.min() / 1.5 <= v <= t.max() * 1.5])
+        ax.set_xticks(
+            [
+                v
+                for v in (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+                if t.min() / 1.5 <= v <= t.max() * 1.5
+            ]
+        )
         ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.set_xlabel("s / image (1 CPU thread, median)")
         ax.set_ylabel(lab)
         ax.legend(fontsize=7, loc="upper right")
-    fig.suptitle("subslope render: N_sub = 1500 + LoS, error vs float64/n_terms=30 reference (same supersampling)",
-                 fontsize=9)
+    fig.suptitle(
+        "subslope render: N_sub = 1500 + LoS, error vs float64/n_terms=30 reference (same "
+        "supersampling)",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     fig.savefig(str(Path(path).with_suffix(".pdf")))
@@ -227,21 +287,38 @@ def main() -> None:
     ap.add_argument("--n-img", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--k-ref", type=int, default=4, help="supersampling of the pixel-integration reference (0: skip)")
+    ap.add_argument(
+        "--k-ref",
+        type=int,
+        default=4,
+        help="supersampling of the pixel-integration reference (0: skip)",
+    )
     ap.add_argument("--no-cosmos", action="store_true")
     ap.add_argument("--csv", default=None)
     ap.add_argument("--plot", default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
     print(C.machine_info())
-    print("| setting | s/img median (min) | max \\|Δ\\|/σ | rel L2 | vs k_ref: max/σ / rel L2 | load |")
+    print(
+        "| setting | s/img median (min) | max \\|Δ\\|/σ | rel L2 | vs k_ref: max/σ / rel L2 | "
+        "load |"
+    )
     print("|---|---|---|---|---|---|")
     t0 = time.perf_counter()
     rows = run(args)
     print(f"total {time.perf_counter() - t0:.0f} s, load {C.load()}")
     if args.csv:
-        keys = ["setting", "scene", "s_per_img", "s_min", "max_sigma", "rel_l2", "max_sigma_vs_kref", "rel_l2_vs_kref",
-                "load"]
+        keys = [
+            "setting",
+            "scene",
+            "s_per_img",
+            "s_min",
+            "max_sigma",
+            "rel_l2",
+            "max_sigma_vs_kref",
+            "rel_l2_vs_kref",
+            "load",
+        ]
         with open(args.csv, "w", newline="") as f:
             w = csv.DictWriter(f, keys, extrasaction="ignore")
             w.writeheader()

@@ -187,7 +187,10 @@ def compare_summary(a: Path, b: Path) -> list[str]:
     if na == nb:
         return []
     first = next((i for i, (x, y) in enumerate(zip(na, nb)) if x != y), min(len(na), len(nb)))
-    return [f"numbers differ from the {first}-th on ({na[first:first + 3]} vs {nb[first:first + 3]})"]
+    return [
+        f"numbers differ from the {first}-th on ({na[first : first + 3]} vs "
+        f"{nb[first : first + 3]})"
+    ]
 
 
 def compare_file(a: Path, b: Path, ignored_attrs: tuple[str, ...]) -> list[str] | None:
@@ -240,8 +243,12 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("baseline", type=Path, help="results/ folder of the reference run")
     parser.add_argument("new", type=Path, help="results/ folder of the run to check")
-    parser.add_argument("--ignore-attr", action="append", default=list(DEFAULT_IGNORED_ATTRS),
-                        help="HDF5 attribute allowed to differ (repeatable)")
+    parser.add_argument(
+        "--ignore-attr",
+        action="append",
+        default=list(DEFAULT_IGNORED_ATTRS),
+        help="HDF5 attribute allowed to differ (repeatable)",
+    )
     args = parser.parse_args(argv)
     failed = compare_trees(args.baseline, args.new, tuple(args.ignore_attr))
     print(f"{failed} file(s) differ" if failed else "all compared files are identical")

@@ -17,10 +17,10 @@ import time
 import numpy as np
 import torch
 
+from subslope.figures.data import stiff_cases_figure
+from subslope.render import pipeline as R
 from subslope.validation import stiff as D
 from subslope.validation.lenstronomy import lenstronomy_model
-from subslope.render import pipeline as R
-from subslope.figures.data import stiff_cases_figure
 
 try:
     from render_speed import psf_kernel  # run as a script from benchmarks/ or the repo root
@@ -34,7 +34,9 @@ FIGURE = "results/figures/stiff_cases.png"
 def main() -> None:
     torch.set_num_threads(1)
     psf = psf_kernel()
-    settings = R.RenderSettings(device="cpu", dtype=torch.float64, compile="off", n_terms=30, n_terms_main=30)
+    settings = R.RenderSettings(
+        device="cpu", dtype=torch.float64, compile="off", n_terms=30, n_terms_main=30
+    )
     for seed in SEEDS:
         t = time.perf_counter()
         res = D.stiff_cases(psf, seed=seed, settings=settings)
@@ -47,10 +49,14 @@ def main() -> None:
         else:
             for c in res["cases"][1:]:
                 m = dict(res["macro"], gamma_sub=np.array([c.gamma]))
-                ref = lenstronomy_model(m, psf.numpy(), 0, subhalos=res["subhalos"][c.gamma], sheets=c.sheet,
-                                        epl="EPL").image()
+                ref = lenstronomy_model(
+                    m, psf.numpy(), 0, subhalos=res["subhalos"][c.gamma], sheets=c.sheet, epl="EPL"
+                ).image()
                 ours = res["images"][c.label]
-                print(f"  {c.label}: relative L2 vs lenstronomy {np.linalg.norm(ours - ref) / np.linalg.norm(ref):.1e}")
+                print(
+                    f"  {c.label}: relative L2 vs lenstronomy "
+                    f"{np.linalg.norm(ours - ref) / np.linalg.norm(ref):.1e}"
+                )
         if seed == SEEDS[0]:
             stiff_cases_figure(res, [FIGURE], run_name=f"benchmarks/stiff_cases.py seed {seed}")
             print(f"wrote {FIGURE}")

@@ -35,8 +35,16 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _reference(s: R.RenderSettings) -> R.RenderSettings:
-    return dataclasses.replace(s, dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off",
-                               chunk_members=16, convolution="direct", population="direct")
+    return dataclasses.replace(
+        s,
+        dtype=torch.float64,
+        n_terms=30,
+        n_terms_main=30,
+        compile="off",
+        chunk_members=16,
+        convolution="direct",
+        population="direct",
+    )
 
 
 # (preset, N_sub, LoS, label γ, seed, settings overrides)
@@ -70,13 +78,17 @@ def test_default_vs_lenstronomy_multiplane(kind, n_sub):
     import warnings
 
     warnings.filterwarnings("ignore", message="Cosmology is provided")
-    batch = C.make_scene(kind, 1, n_sub, True, seed=21, gamma_label=2.0 if kind == "train" else None,
-                         delta_los=1.5)
+    batch = C.make_scene(
+        kind, 1, n_sub, True, seed=21, gamma_label=2.0 if kind == "train" else None, delta_los=1.5
+    )
     model = lenstronomy_model(batch.macro, batch.psf, 0, subhalos=batch.subhalos, los=batch.los)
     assert model.n_planes > 1
     theirs = torch.as_tensor(model.image())[None]
     max_sigma, rel = C.image_errors(batch.render(DEFAULT), theirs)
     _, rel64 = C.image_errors(batch.render(_reference(DEFAULT)), theirs)
-    print(f"{kind}: default max|Δ|/σ = {max_sigma:.2e}, rel L2 = {rel:.2e}; float64 reference rel L2 = {rel64:.2e}")
+    print(
+        f"{kind}: default max|Δ|/σ = {max_sigma:.2e}, rel L2 = {rel:.2e}; float64 reference rel "
+        f"L2 = {rel64:.2e}"
+    )
     assert max_sigma <= MAX_SIGMA and rel <= REL_L2, (max_sigma, rel)
     assert rel64 <= 1e-5

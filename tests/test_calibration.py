@@ -76,14 +76,18 @@ def test_make_stacks_distinct_images_within_one_set(rng):
         for row, g, s in zip(st.indices, st.gamma, st.set_id, strict=True):
             assert len(set(row)) == n
             assert np.all(set_index[row] == s) and np.all(gamma[row] == g)
-    more = make_stacks(gamma, set_index, 5, rng=2, n_stacks=300)  # > 80 disjoint ones: overlapping extras
+    more = make_stacks(
+        gamma, set_index, 5, rng=2, n_stacks=300
+    )  # > 80 disjoint ones: overlapping extras
     assert more.indices.shape == (300, 5)
     assert all(len(set(r)) == 5 and len(set(set_index[r])) == 1 for r in more.indices)
     fewer = make_stacks(gamma, set_index, 5, rng=2, n_stacks=10)
     assert len(fewer) == 10 and len(np.unique(fewer.indices)) == 50
     # Deterministic for a seed.
-    np.testing.assert_array_equal(make_stacks(gamma, set_index, 4, rng=7).indices,
-                                  make_stacks(gamma, set_index, 4, rng=7).indices)
+    np.testing.assert_array_equal(
+        make_stacks(gamma, set_index, 4, rng=7).indices,
+        make_stacks(gamma, set_index, 4, rng=7).indices,
+    )
     with pytest.raises(ValueError, match="no set has"):
         make_stacks(gamma, set_index, 14)
     bad = gamma.copy()
@@ -132,7 +136,14 @@ def test_gaussian_toy_coverage_is_nominal_for_every_n(rng):
         keys_by_n[n] = st.set_id
     table = calibration_table(t_by_n, keys_by_n, seed=0)
     assert list(table.n_images) == [1, 2, 5, 13]
-    assert set(table.columns) >= {"tau", "tau_wilks", "n_calibration", "n_heldout", "coverage", "coverage_err"}
+    assert set(table.columns) >= {
+        "tau",
+        "tau_wilks",
+        "n_calibration",
+        "n_heldout",
+        "coverage",
+        "coverage_err",
+    }
     for row in table.itertuples():
         assert row.n_calibration + row.n_heldout == len(t_by_n[row.n_images])
         sig = np.sqrt(0.68 * 0.32 / row.n_heldout)
@@ -151,7 +162,8 @@ def test_gaussian_toy_coverage_is_nominal_for_every_n(rng):
 
 
 def test_overconfident_estimator_breaks_wilks_not_empirical_calibration(rng):
-    # ln r̂ = 2 × the true log-likelihood ratio: t doubles, Wilks under-covers (P(χ²₁ ≤ 0.494) ≈ 0.52).
+    # ln r̂ = 2 × the true log-likelihood ratio: t doubles, Wilks under-covers (P(χ²₁ ≤ 0.494) ≈
+    # 0.52).
     theta, set_index, profiles = _gaussian_toy(rng, n_sets=400, scale=2.0)
     st = make_stacks(theta, set_index, 1, rng=0)
     t = stack_t_true(profiles, G, st)

@@ -20,17 +20,26 @@ CONFIG = REPO / "config" / "config.yaml"
 #: reference values): the 10 bundled COSMOS galaxies need relaxed cuts and a coarser split;
 #: the reduced campaign's sizes, compiled rendering and training settings for a 2-core CPU.
 SHIPPED_DEVIATIONS = {
-    ("simulation", "sources", "cuts"), ("simulation", "sources", "split"),
-    ("simulation", "sources", "mag_renormalize"), ("simulation", "scenes"),
-    ("simulation", "multipliers"), ("simulation", "render", "compile"), ("training", "batch_size"),
-    ("training", "num_workers"), ("training", "checkpoint_every"),
+    ("simulation", "sources", "cuts"),
+    ("simulation", "sources", "split"),
+    ("simulation", "sources", "mag_renormalize"),
+    ("simulation", "scenes"),
+    ("simulation", "multipliers"),
+    ("simulation", "render", "compile"),
+    ("training", "batch_size"),
+    ("training", "num_workers"),
+    ("training", "checkpoint_every"),
 }
 
 #: Scene keys without a schema default (their preset differs between scenes; see the
 #: header of the schema): paths relative to $defs.scene.
 SCENE_KEYS_WITHOUT_DEFAULT = {
-    "images_per_set", "source.split", "subhalos.count", "subhalos.profile",
-    "subhalos.placement", "los.profile",
+    "images_per_set",
+    "source.split",
+    "subhalos.count",
+    "subhalos.profile",
+    "subhalos.placement",
+    "los.profile",
 }
 
 
@@ -157,8 +166,11 @@ def test_workflow_schema_is_the_package_schema():
 def test_defaults_fill_partial_sections():
     out = cfg.validate({"instrument": {"psf": {"source": "gaussian"}}})
     assert out["instrument"]["psf"] == {
-        "source": "gaussian", "file": "psf/emp_psf_f814w.fits", "index": 17,
-        "supersampling": 4, "fwhm": 0.1,
+        "source": "gaussian",
+        "file": "psf/emp_psf_f814w.fits",
+        "index": 17,
+        "supersampling": 4,
+        "fwhm": 0.1,
     }
     assert out["instrument"]["exposure_time"] == 2200
     assert out["data"]["mirror"] == "../shared/data"
@@ -174,26 +186,65 @@ def test_defaults_fill_partial_sections():
         ({"instrument": {"npix": 4}}, "instrument.npix", "[8, 1024]"),
         ({"instrument": {"read_noise": -1}}, "instrument.read_noise", "[0, 100]"),
         ({"instrument": {"psf": {"index": 56}}}, "instrument.psf.index", "[0, 55]"),
-        ({"instrument": {"psf": {"source": "airy"}}}, "instrument.psf.source", "'empirical', 'gaussian'"),  # enum
+        (
+            {"instrument": {"psf": {"source": "airy"}}},
+            "instrument.psf.source",
+            "'empirical', 'gaussian'",
+        ),  # enum
         ({"cosmology": {"name": "WMAP9"}}, "cosmology.name", "'Planck18'"),
         ({"run_name": "has space"}, "run_name", "matching"),
         ({"data": {"mirorr": "x"}}, "data.mirorr", "mirror"),  # unknown key
         ({"trainig": {}}, "trainig", "run_name"),
         ({"stages": {"galery": True}}, "stages.galery", "gallery"),
-        ({"simulation": {"render": {"dtype": "float16"}}}, "simulation.render.dtype", "'float32', 'float64'"),
-        ({"simulation": {"render": {"batch_size": 0}}}, "simulation.render.batch_size", "[1, 4096]"),
-        ({"simulation": {"scenes": {"train": {"n_shards": -1, "images_per_shard": 4}}}},
-         "simulation.scenes.train.n_shards", "[0, 100000]"),
-        ({"simulation": {"scenes": {"train": {"n_shards": 1}}}}, "simulation.scenes.train", "images_per_shard"),
+        (
+            {"simulation": {"render": {"dtype": "float16"}}},
+            "simulation.render.dtype",
+            "'float32', 'float64'",
+        ),
+        (
+            {"simulation": {"render": {"batch_size": 0}}},
+            "simulation.render.batch_size",
+            "[1, 4096]",
+        ),
+        (
+            {"simulation": {"scenes": {"train": {"n_shards": -1, "images_per_shard": 4}}}},
+            "simulation.scenes.train.n_shards",
+            "[0, 100000]",
+        ),
+        (
+            {"simulation": {"scenes": {"train": {"n_shards": 1}}}},
+            "simulation.scenes.train",
+            "images_per_shard",
+        ),
         ({"simulation": {"multipliers": [0.0]}}, "simulation.multipliers.0", "(0, 1000]"),
-        ({"simulation": {"sources": {"split": {"train": 1.5}}}}, "simulation.sources.split.train", "[0, 1]"),
-        ({"simulation": {"sources": {"cuts": {"mag_max": 50}}}}, "simulation.sources.cuts.mag_max", "[10, 30]"),
-        ({"scenes": {"train": {"subhalos": {"profile": "sis"}}}}, "scenes.train.subhalos.profile", "'epl', 'nfw', 'tnfw'"),
+        (
+            {"simulation": {"sources": {"split": {"train": 1.5}}}},
+            "simulation.sources.split.train",
+            "[0, 1]",
+        ),
+        (
+            {"simulation": {"sources": {"cuts": {"mag_max": 50}}}},
+            "simulation.sources.cuts.mag_max",
+            "[10, 30]",
+        ),
+        (
+            {"scenes": {"train": {"subhalos": {"profile": "sis"}}}},
+            "scenes.train.subhalos.profile",
+            "'epl', 'nfw', 'tnfw'",
+        ),
         ({"scenes": {"nfw": {"images_per_set": 0}}}, "scenes.nfw.images_per_set", "[1, 1000]"),
-        ({"scenes": {"train": {"main_lens": {"theta_ee": 1.0}}}}, "scenes.train.main_lens.theta_ee", "theta_e"),
+        (
+            {"scenes": {"train": {"main_lens": {"theta_ee": 1.0}}}},
+            "scenes.train.main_lens.theta_ee",
+            "theta_e",
+        ),
         ({"stages": {"simulate": "yes"}}, "stages.simulate", "boolean"),
         ({"training": {"batch_size": 1}}, "training.batch_size", "[2, 100000]"),
-        ({"training": {"arch": {"preset": "vgg"}}}, "training.arch.preset", "'reduced', 'resnet50'"),
+        (
+            {"training": {"arch": {"preset": "vgg"}}},
+            "training.arch.preset",
+            "'reduced', 'resnet50'",
+        ),
         ({"training": {"lr": 0.0}}, "training.lr", "(0, 1]"),
         ({"training": {"optimiser": "sgd"}}, "training.optimiser", "max_epochs"),
         ({"inference": {"gamma_grid": {"n": 2}}}, "inference.gamma_grid.n", "[3, 100000]"),
@@ -251,16 +302,34 @@ def test_cli_validate_config(tmp_path, capsys):
     assert "instrument.psf.fwhm" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("overlay, key, allowed", [
-    ({"inference": {"gamma_grid": {"low": 2.5, "high": 1.5}}}, "inference.gamma_grid.low/high", "low < high"),
-    ({"calibration": {"single_scene": "nonexistent"}}, "calibration.single_scene", "simulated scenes"),
-    ({"calibration": {"stack_scene": "nowhere"}}, "calibration.stack_scene", "simulated scenes"),
-    ({"calibration": {"n_images": [1, 2, 20]}}, "calibration.n_images", "images_per_set = 13"),
-    ({"cdm": {"nfw_scene": "missing"}}, "cdm.nfw_scene", "no shards of that scene"),
-    ({"simulation": {"multipliers": [0.5, 2.0]}}, "simulation.multipliers", "must include 1.0"),
-    ({"simulation": {"scenes": {"test_epl": {"n_shards": 1, "images_per_shard": 14}}}},
-     "simulation.scenes.test_epl.images_per_shard", "multiple"),
-])
+@pytest.mark.parametrize(
+    "overlay, key, allowed",
+    [
+        (
+            {"inference": {"gamma_grid": {"low": 2.5, "high": 1.5}}},
+            "inference.gamma_grid.low/high",
+            "low < high",
+        ),
+        (
+            {"calibration": {"single_scene": "nonexistent"}},
+            "calibration.single_scene",
+            "simulated scenes",
+        ),
+        (
+            {"calibration": {"stack_scene": "nowhere"}},
+            "calibration.stack_scene",
+            "simulated scenes",
+        ),
+        ({"calibration": {"n_images": [1, 2, 20]}}, "calibration.n_images", "images_per_set = 13"),
+        ({"cdm": {"nfw_scene": "missing"}}, "cdm.nfw_scene", "no shards of that scene"),
+        ({"simulation": {"multipliers": [0.5, 2.0]}}, "simulation.multipliers", "must include 1.0"),
+        (
+            {"simulation": {"scenes": {"test_epl": {"n_shards": 1, "images_per_shard": 14}}}},
+            "simulation.scenes.test_epl.images_per_shard",
+            "multiple",
+        ),
+    ],
+)
 def test_cross_key_problems_name_the_key(overlay, key, allowed):
     """The checks that involve several keys live in config.validate, so the CLI and the
     workflow refuse the same configs with the same message."""
@@ -271,7 +340,9 @@ def test_cross_key_problems_name_the_key(overlay, key, allowed):
         else:
             merged = copy.deepcopy(raw.get(section, {}))
             for k, v in values.items():
-                merged[k] = {**merged.get(k, {}), **v} if isinstance(v, dict) and k == "scenes" else v
+                merged[k] = (
+                    {**merged.get(k, {}), **v} if isinstance(v, dict) and k == "scenes" else v
+                )
             raw[section] = merged
     with pytest.raises(cfg.ConfigError) as info:
         cfg.validate(raw)

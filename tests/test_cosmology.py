@@ -22,7 +22,12 @@ def test_reference_units_planck18():
 
 @pytest.mark.parametrize(
     "gamma, kappa1, alpha1",
-    [(1.01, 1.02e-2, 1.03e-2), (1.5, 3.26e-4, 4.34e-4), (2.0, 2.13e-4, 4.26e-4), (2.9, 3.41e-5, 6.81e-4)],
+    [
+        (1.01, 1.02e-2, 1.03e-2),
+        (1.5, 3.26e-4, 4.34e-4),
+        (2.0, 2.13e-4, 4.26e-4),
+        (2.9, 3.41e-5, 6.81e-4),
+    ],
 )
 def test_epl_amp_reference(gamma, kappa1, alpha1):
     amp = cos.epl_amp_from_m200(1e8, gamma, ZL, ZS)
@@ -63,11 +68,15 @@ def test_distances_and_cosmo_argument():
     # arrays broadcast, and agree with the cached scalar path
     zs = np.array([0.2, 0.4])
     np.testing.assert_allclose(
-        cos.angular_diameter_distance(zs), [cos.angular_diameter_distance(z) for z in zs], rtol=1e-12
+        cos.angular_diameter_distance(zs),
+        [cos.angular_diameter_distance(z) for z in zs],
+        rtol=1e-12,
     )
     # rho_crit in lens-plane arcsec units = rho_crit[Msun/Mpc^3] * (Mpc per arcsec)^3
     rho_mpc = other.critical_density(0.3).to_value("Msun/Mpc3")
-    assert cos.rho_crit(0.3, other) == pytest.approx(rho_mpc * cos.arcsec_to_mpc(0.3, other) ** 3, rel=1e-12)
+    assert cos.rho_crit(0.3, other) == pytest.approx(
+        rho_mpc * cos.arcsec_to_mpc(0.3, other) ** 3, rel=1e-12
+    )
 
 
 def test_nfw_conversion_roundtrip():
@@ -91,7 +100,10 @@ def test_nfw_conversion_roundtrip():
         (lambda: conc.dutton_maccio_c200(-1.0, 0.2), "m200"),
         (lambda: conc.dutton_maccio_c200(1e8, 0.0), "z"),
         (lambda: conc.truncation_radius_kpc(1e8, -5.0), "r_sub_kpc"),
-        (lambda: conc.sample_c200(1e8, 0.2, np.random.default_rng(0), multiplier=0.0), "multiplier"),
+        (
+            lambda: conc.sample_c200(1e8, 0.2, np.random.default_rng(0), multiplier=0.0),
+            "multiplier",
+        ),
     ],
 )
 def test_bad_inputs_name_the_argument(call, name):
@@ -135,7 +147,9 @@ def test_sample_c200_scatter_and_multiplier(rng):
     c = conc.sample_c200(m, 0.2, rng, multiplier=2.0)
     dex = np.log10(c / (2.0 * conc.dutton_maccio_c200(1e8, 0.2)))
     assert abs(dex.mean()) < 3e-3 and dex.std() == pytest.approx(0.1, rel=0.03)
-    np.testing.assert_allclose(conc.sample_c200(m[:3], 0.2, rng, scatter_dex=0.0), conc.dutton_maccio_c200(m[:3], 0.2))
+    np.testing.assert_allclose(
+        conc.sample_c200(m[:3], 0.2, rng, scatter_dex=0.0), conc.dutton_maccio_c200(m[:3], 0.2)
+    )
 
 
 def test_truncation_radius():
@@ -143,4 +157,6 @@ def test_truncation_radius():
     assert conc.truncation_radius_kpc(8e7, 400.0) == pytest.approx(1.4 * 2 * 4)
     kpc = 1e3 * cos.arcsec_to_mpc(ZL)
     r_sub_arcsec = 50.0 / kpc
-    assert conc.truncation_radius_arcsec(1e7, r_sub_arcsec, ZL) == pytest.approx(1.4 / kpc, rel=1e-12)
+    assert conc.truncation_radius_arcsec(1e7, r_sub_arcsec, ZL) == pytest.approx(
+        1.4 / kpc, rel=1e-12
+    )

@@ -5,7 +5,11 @@ import pytest
 from astropy.cosmology import Planck18
 
 from subslope.io.cosmos import (
-    CosmosCatalog, CosmosCuts, CosmosError, normalize_to_magnitude, place_at_redshift,
+    CosmosCatalog,
+    CosmosCuts,
+    CosmosError,
+    normalize_to_magnitude,
+    place_at_redshift,
     split_idents,
 )
 
@@ -32,8 +36,11 @@ def test_paper_cuts_reject_all_bundled_galaxies_with_a_clear_error(catalog):
 
 
 def test_relaxed_cuts(catalog):
-    sel = catalog.select(CosmosCuts(mag_max=None, min_stamp_side=64, min_flux_radius=10.0,
-                                    zphot_max=1.0, exclude=(178249,)))
+    sel = catalog.select(
+        CosmosCuts(
+            mag_max=None, min_stamp_side=64, min_flux_radius=10.0, zphot_max=1.0, exclude=(178249,)
+        )
+    )
     t = sel.table
     assert len(sel) > 0
     assert (np.minimum(t["nx"], t["ny"]) >= 64).all() and (t["flux_radius"] > 10).all()
@@ -64,7 +71,9 @@ def test_place_at_redshift_flux_and_size(catalog):
     stamp = catalog.stamp(141190)
     z_phot, z_s = 0.19499999, 0.6
     sb, scale = place_at_redshift(stamp, 0.03, z_phot, z_s)
-    ratio = (Planck18.angular_diameter_distance(z_phot) / Planck18.angular_diameter_distance(z_s)).value
+    ratio = (
+        Planck18.angular_diameter_distance(z_phot) / Planck18.angular_diameter_distance(z_s)
+    ).value
     assert scale == pytest.approx(0.03 * ratio, rel=1e-12)
     assert scale < 0.03  # a galaxy moved further away looks smaller
     zp = 10 ** ((25.127 - 25.95) / 2.5)

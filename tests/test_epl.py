@@ -10,11 +10,23 @@ import torch
 from lensing_checks import fd_grad, ring_points
 from scipy.special import hyp2f1
 
-from subslope.physics.profiles.ellipse import (ellipse_frame, ellipticity_to_q_phi, from_frame,
-                                       q_phi_to_ellipticity, to_frame)
-from subslope.physics.profiles.epl import (N_TERMS_DEFAULT, amp_to_theta_e, epl_convergence,
-                                   epl_convergence_theta_e, epl_deflection,
-                                   epl_deflection_theta_e, epl_potential, theta_e_to_amp)
+from subslope.physics.profiles.ellipse import (
+    ellipse_frame,
+    ellipticity_to_q_phi,
+    from_frame,
+    q_phi_to_ellipticity,
+    to_frame,
+)
+from subslope.physics.profiles.epl import (
+    N_TERMS_DEFAULT,
+    amp_to_theta_e,
+    epl_convergence,
+    epl_convergence_theta_e,
+    epl_deflection,
+    epl_deflection_theta_e,
+    epl_potential,
+    theta_e_to_amp,
+)
 
 F64 = torch.float64
 
@@ -27,7 +39,6 @@ CASES = [
     (0.9, 2.5, 0.05, 0.19, 0.2, 0.2),
     (1.3, 2.99, -0.2, -0.2, -0.1, 0.0),
 ]
-
 
 
 # ---------------------------------------------------------------- ellipse helpers
@@ -44,13 +55,19 @@ def test_ellipse_roundtrip_and_round_case(rng):
     # exactly round: q = 1, no rotation, finite gradients
     z = torch.zeros(3, dtype=F64, requires_grad=True)
     qf, c, s = ellipse_frame(z, z)
-    assert torch.equal(qf.detach(), torch.ones(3, dtype=F64)) and torch.equal(s.detach(), torch.zeros(3, dtype=F64))
+    assert torch.equal(qf.detach(), torch.ones(3, dtype=F64)) and torch.equal(
+        s.detach(), torch.zeros(3, dtype=F64)
+    )
     (qf.sum() + c.sum() + s.sum()).backward()
     assert torch.isfinite(z.grad).all()
     # rotation helpers are inverse of each other
     x, y = torch.tensor([0.3, -1.0], dtype=F64), torch.tensor([0.7, 0.2], dtype=F64)
     xr, yr = to_frame(x, y, c[:2], s[:2] + 0.0)
-    xb, yb = from_frame(*to_frame(x, y, torch.cos(phi[:2]), torch.sin(phi[:2])), torch.cos(phi[:2]), torch.sin(phi[:2]))
+    xb, yb = from_frame(
+        *to_frame(x, y, torch.cos(phi[:2]), torch.sin(phi[:2])),
+        torch.cos(phi[:2]),
+        torch.sin(phi[:2]),
+    )
     torch.testing.assert_close(xb, x)
     torch.testing.assert_close(yb, y)
 
@@ -79,7 +96,10 @@ def test_divergence_is_twice_kappa_and_curl_free(theta_e, gamma, e1, e2, cx, cy,
 def test_kappa_formula_lenstronomy_convention():
     """kappa = (3-g)/2 (theta_E / sqrt(q x'^2 + y'^2/q))^(g-1), x' rotated by phi."""
     q, phi, te, g = 0.7, 0.4, 1.2, 1.8
-    e1, e2 = [float(v) for v in q_phi_to_ellipticity(torch.tensor(q, dtype=F64), torch.tensor(phi, dtype=F64))]
+    e1, e2 = [
+        float(v)
+        for v in q_phi_to_ellipticity(torch.tensor(q, dtype=F64), torch.tensor(phi, dtype=F64))
+    ]
     x, y = torch.tensor([0.5, -1.1, 0.0], dtype=F64), torch.tensor([0.3, 0.4, -0.9], dtype=F64)
     xp = math.cos(phi) * (x - 0.1) + math.sin(phi) * (y + 0.2)
     yp = -math.sin(phi) * (x - 0.1) + math.cos(phi) * (y + 0.2)
@@ -108,10 +128,18 @@ def test_round_closed_form(gamma, dtype):
     torch.testing.assert_close(k, (3 - gamma) / 2 * amp * r ** (1 - gamma), rtol=5e-6, atol=0)
 
 
-@pytest.mark.parametrize("gamma,kappa1,alpha1", [(1.01, 1.02e-2, 1.03e-2), (1.5, 3.26e-4, 4.34e-4),
-                                                  (2.0, 2.13e-4, 4.26e-4), (2.9, 3.41e-5, 6.81e-4)])
+@pytest.mark.parametrize(
+    "gamma,kappa1,alpha1",
+    [
+        (1.01, 1.02e-2, 1.03e-2),
+        (1.5, 3.26e-4, 4.34e-4),
+        (2.0, 2.13e-4, 4.26e-4),
+        (2.9, 3.41e-5, 6.81e-4),
+    ],
+)
 def test_science_reference_values(gamma, kappa1, alpha1, dtype):
-    """docs/simulation.md (M200 = 1e8 Msun, round): kappa(1") listed => alpha(1") listed (3 digits)."""
+    """docs/simulation.md (M200 = 1e8 Msun, round): kappa(1") listed => alpha(1") listed (3
+    digits)."""
     one = torch.ones(1, dtype=dtype)
     k_unit = epl_convergence(one, 0 * one, 1.0, gamma, 0.0, 0.0)  # kappa(1") per unit amplitude
     amp = kappa1 / k_unit
@@ -123,13 +151,26 @@ def test_science_reference_values(gamma, kappa1, alpha1, dtype):
 
 
 def test_mass_inside_critical_ellipse():
-    """Gauss: flux of alpha through q x'^2 + y'^2/q = theta_E^2 equals 2 pi theta_E^2 (mean kappa 1)."""
+    """Gauss: flux of alpha through q x'^2 + y'^2/q = theta_E^2 equals 2 pi theta_E^2 (mean kappa
+    1)."""
     te, n = 1.1, 4096
     s = torch.linspace(0, 2 * math.pi, n + 1, dtype=F64)[:-1]
-    for g, e1, e2 in [(1.01, 0.2, -0.1), (1.5, -0.15, 0.2), (2.0, 0.2, 0.2), (2.7, 0.05, -0.2), (2.99, 0.0, 0.0)]:
-        q, c, sn = (v.item() for v in ellipse_frame(torch.tensor(e1, dtype=F64), torch.tensor(e2, dtype=F64)))
+    for g, e1, e2 in [
+        (1.01, 0.2, -0.1),
+        (1.5, -0.15, 0.2),
+        (2.0, 0.2, 0.2),
+        (2.7, 0.05, -0.2),
+        (2.99, 0.0, 0.0),
+    ]:
+        q, c, sn = (
+            v.item()
+            for v in ellipse_frame(torch.tensor(e1, dtype=F64), torch.tensor(e2, dtype=F64))
+        )
         xp, yp = te / math.sqrt(q) * torch.cos(s), te * math.sqrt(q) * torch.sin(s)
-        nxp, nyp = te * math.sqrt(q) * torch.cos(s), te / math.sqrt(q) * torch.sin(s)  # outward n dl/ds
+        nxp, nyp = (
+            te * math.sqrt(q) * torch.cos(s),
+            te / math.sqrt(q) * torch.sin(s),
+        )  # outward n dl/ds
         x, y = c * xp - sn * yp + 0.1, sn * xp + c * yp - 0.2
         nx, ny = c * nxp - sn * nyp, sn * nxp + c * nyp
         ax, ay = epl_deflection_theta_e(x, y, te, g, e1, e2, 0.1, -0.2)
@@ -142,12 +183,22 @@ def test_series_matches_scipy_hyp2f1(rng):
     """Independent check of the series with scipy's 2F1 (TM15 eq. 13) at the prior edges."""
     x, y = ring_points(rng, 300, 0.05, 3.0)
     for g, e1, e2 in [(1.01, 0.2, 0.2), (1.9, -0.2, 0.2), (2.99, -0.2, -0.2), (2.3, 0.13, 0.0)]:
-        q, c, s = (v.item() for v in ellipse_frame(torch.tensor(e1, dtype=F64), torch.tensor(e2, dtype=F64)))
+        q, c, s = (
+            v.item()
+            for v in ellipse_frame(torch.tensor(e1, dtype=F64), torch.tensor(e2, dtype=F64))
+        )
         t = g - 1
         xp, yp = (c * x + s * y).numpy(), (-s * x + c * y).numpy()
         Z = q * xp + 1j * yp
         R = np.abs(Z)
-        a = 2 / (1 + q) * q ** (t / 2) * R ** (-t) * Z * hyp2f1(1, t / 2, 2 - t / 2, -(1 - q) / (1 + q) * Z / Z.conj())
+        a = (
+            2
+            / (1 + q)
+            * q ** (t / 2)
+            * R ** (-t)
+            * Z
+            * hyp2f1(1, t / 2, 2 - t / 2, -(1 - q) / (1 + q) * Z / Z.conj())
+        )
         ax, ay = (c * a.real - s * a.imag), (s * a.real + c * a.imag)
         bx, by = epl_deflection(x, y, 1.0, g, e1, e2)
         err = np.hypot(bx.numpy() - ax, by.numpy() - ay) / np.abs(a)
@@ -179,15 +230,20 @@ def test_float32_vs_float64(rng):
     g = torch.tensor(rng.uniform(1.01, 2.99, (m, 1)))
     e1 = torch.tensor(rng.uniform(-0.2, 0.2, (m, 1)))
     e2 = torch.tensor(rng.uniform(-0.2, 0.2, (m, 1)))
-    cx, cy = torch.tensor(rng.uniform(-0.2, 0.2, (m, 1))), torch.tensor(rng.uniform(-0.2, 0.2, (m, 1)))
+    cx, cy = (
+        torch.tensor(rng.uniform(-0.2, 0.2, (m, 1))),
+        torch.tensor(rng.uniform(-0.2, 0.2, (m, 1))),
+    )
     amp = torch.tensor(rng.uniform(1e-3, 1.5, (m, 1)))
     args = [amp, g, e1, e2, cx, cy]
     fargs = [a.float() for a in args]
     fx, fy = epl_deflection(x.float(), y.float(), *fargs)
     kf = epl_convergence(x.float(), y.float(), *fargs)
     assert fx.dtype == torch.float32 and kf.dtype == torch.float32
-    for (xx, yy, aa), bound in [((x.float().double(), y.float().double(), [a.double() for a in fargs]), 2e-6),
-                                ((x, y, args), 2e-5)]:
+    for (xx, yy, aa), bound in [
+        ((x.float().double(), y.float().double(), [a.double() for a in fargs]), 2e-6),
+        ((x, y, args), 2e-5),
+    ]:
         ax, ay = epl_deflection(xx, yy, *aa)
         k = epl_convergence(xx, yy, *aa)
         err = (torch.hypot(fx.double() - ax, fy.double() - ay) / torch.hypot(ax, ay)).max().item()
@@ -240,10 +296,19 @@ def test_broadcasting_population(dtype):
     x = torch.rand(B, 1, P, dtype=dtype)
     y = torch.rand(B, 1, P, dtype=dtype)
     par = lambda lo, hi: lo + (hi - lo) * torch.rand(B, N, 1, dtype=dtype)
-    amp, g, e1, e2, cx, cy = par(0, 1), par(1.01, 2.99), par(-.2, .2), par(-.2, .2), par(-1, 1), par(-1, 1)
+    amp, g, e1, e2, cx, cy = (
+        par(0, 1),
+        par(1.01, 2.99),
+        par(-0.2, 0.2),
+        par(-0.2, 0.2),
+        par(-1, 1),
+        par(-1, 1),
+    )
     ax, ay = epl_deflection(x, y, amp, g, e1, e2, cx, cy)
     assert ax.shape == (B, N, P) and ax.dtype == dtype
-    one_x, one_y = epl_deflection(x[1, 0], y[1, 0], amp[1, 3], g[1, 3], e1[1, 3], e2[1, 3], cx[1, 3], cy[1, 3])
+    one_x, one_y = epl_deflection(
+        x[1, 0], y[1, 0], amp[1, 3], g[1, 3], e1[1, 3], e2[1, 3], cx[1, 3], cy[1, 3]
+    )
     torch.testing.assert_close(ax[1, 3], one_x)
     torch.testing.assert_close(ay[1, 3], one_y)
     assert epl_convergence(x, y, amp, g, e1, e2, cx, cy).shape == (B, N, P)
@@ -276,8 +341,14 @@ def test_errors_name_argument():
 @pytest.mark.gpu
 def test_cuda_matches_cpu(rng):
     x, y = ring_points(rng, 300, 0.0, 2.0)
-    args = (torch.tensor([[0.5], [1e-2]]), torch.tensor([[2.2], [1.01]]), torch.tensor([[0.1], [-0.2]]),
-            torch.tensor([[0.0], [0.2]]), torch.tensor([[0.1], [0.0]]), torch.tensor([[0.0], [-0.3]]))
+    args = (
+        torch.tensor([[0.5], [1e-2]]),
+        torch.tensor([[2.2], [1.01]]),
+        torch.tensor([[0.1], [-0.2]]),
+        torch.tensor([[0.0], [0.2]]),
+        torch.tensor([[0.1], [0.0]]),
+        torch.tensor([[0.0], [-0.3]]),
+    )
     ax, ay = epl_deflection(x.float(), y.float(), *args)
     gx, gy = epl_deflection(x.float().cuda(), y.float().cuda(), *(a.cuda() for a in args))
     assert gx.device.type == "cuda"

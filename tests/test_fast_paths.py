@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.render import nearfar as NF
-from subslope.render import populations
 from subslope.physics.pairs import epl as pair_epl
 from subslope.physics.pairs import sums as PK
 from subslope.physics.profiles.epl import R_MIN, epl_deflection
+from subslope.render import nearfar as NF
+from subslope.render import populations
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
@@ -28,8 +28,8 @@ F64 = torch.float64
 
 @pytest.mark.parametrize("ex", [-1.0, -0.95, -0.7, -0.5, -0.3, -0.05, -0.005, 0.0])
 def test_power_float32_matches_float64(ex):
-    r2 = torch.logspace(np.log10(R_MIN ** 2), 4, 40001, dtype=F64)
-    ref = r2 ** ex
+    r2 = torch.logspace(np.log10(R_MIN**2), 4, 40001, dtype=F64)
+    ref = r2**ex
     got = pair_epl.power(r2.float(), torch.tensor(ex, dtype=torch.float32)).double()
     lib = torch.exp(ex * torch.log(r2.float())).double()
     rel = float(((got - ref) / ref).abs().max())
@@ -47,9 +47,14 @@ def test_power_float64_is_exp_log():
 
 def _epl_params(n, seed, dtype=F64, b=2):
     rng = np.random.default_rng(seed)
-    vals = {"amp": rng.uniform(1e-5, 1e-3, (b, n)), "gamma": rng.uniform(1.05, 2.95, (b, n)),
-            "e1": rng.uniform(-0.2, 0.2, (b, n)), "e2": rng.uniform(-0.2, 0.2, (b, n)),
-            "x": rng.uniform(-2, 2, (b, n)), "y": rng.uniform(-2, 2, (b, n))}
+    vals = {
+        "amp": rng.uniform(1e-5, 1e-3, (b, n)),
+        "gamma": rng.uniform(1.05, 2.95, (b, n)),
+        "e1": rng.uniform(-0.2, 0.2, (b, n)),
+        "e2": rng.uniform(-0.2, 0.2, (b, n)),
+        "x": rng.uniform(-2, 2, (b, n)),
+        "y": rng.uniform(-2, 2, (b, n)),
+    }
     return {k: torch.tensor(v, dtype=dtype) for k, v in vals.items()}
 
 
@@ -60,7 +65,11 @@ def test_direct_sums_few_equals_direct_sums(n, compiled):
     g = torch.linspace(-2.5, 2.5, 37, dtype=F64)
     x, y = torch.meshgrid(g, g, indexing="xy")
     x, y = x.reshape(1, -1), y.reshape(1, -1)
-    few = torch.compile(PK.direct_sums_few, dynamic=True, fullgraph=True) if compiled else PK.direct_sums_few
+    few = (
+        torch.compile(PK.direct_sums_few, dynamic=True, fullgraph=True)
+        if compiled
+        else PK.direct_sums_few
+    )
     a = few(x, y, table, "epl", True)
     b = PK.direct_sums(x, y, table, "epl", True)
     for u, v in zip(a, b):
@@ -77,7 +86,9 @@ def test_main_lens_table_equals_epl_deflection(dtype, tol):
     x, y = x.reshape(1, -1), y.reshape(1, -1)
     table = pair_epl.epl_table(p, 14)
     ax, ay, _ = PK.direct_sums_few(x, y, table, "epl", False)
-    rx, ry = epl_deflection(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"], n_terms=14)
+    rx, ry = epl_deflection(
+        x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"], n_terms=14
+    )
     scale = float(torch.hypot(rx, ry).max())
     assert float((ax - rx).abs().max()) <= tol * scale
     assert float((ay - ry).abs().max()) <= tol * scale
@@ -97,30 +108,52 @@ def test_near_pairs_match_brute_force():
         for i in range(n):
             if not live[k, i]:
                 continue
-            for J in range(nt):
-                for I in range(nt):
-                    dv = max(J * tile - 0.5 - float(v[k, i]), float(v[k, i]) - (J * tile + tile - 0.5), 0.0)
-                    du = max(I * tile - 0.5 - float(u[k, i]), float(u[k, i]) - (I * tile + tile - 0.5), 0.0)
+            for row in range(nt):
+                for col in range(nt):
+                    dv = max(
+                        row * tile - 0.5 - float(v[k, i]),
+                        float(v[k, i]) - (row * tile + tile - 0.5),
+                        0.0,
+                    )
+                    du = max(
+                        col * tile - 0.5 - float(u[k, i]),
+                        float(u[k, i]) - (col * tile + tile - 0.5),
+                        0.0,
+                    )
                     if dv * dv + du * du <= float(radius[k, i]) ** 2:
-                        want.add(((k * nt + J) * nt + I, k * n + i))
+                        want.add(((k * nt + row) * nt + col, k * n + i))
     assert got == want
     assert torch.all(tiles[1:] >= tiles[:-1])  # sorted by tile
 
 
 def test_constant_classes_follow_gamma_edges():
     gam = torch.tensor([[1.01, 1.49, 1.5, 1.79, 2.0, 2.21, 2.49, 2.5, 2.99]], dtype=F64)
-    p = {"amp": torch.ones_like(gam), "gamma": gam, "e1": torch.zeros_like(gam), "e2": torch.zeros_like(gam),
-         "x": torch.zeros_like(gam), "y": torch.zeros_like(gam)}
+    p = {
+        "amp": torch.ones_like(gam),
+        "gamma": gam,
+        "e1": torch.zeros_like(gam),
+        "e2": torch.zeros_like(gam),
+        "x": torch.zeros_like(gam),
+        "y": torch.zeros_like(gam),
+    }
     cls = NF.constant_class(PK.member_table("epl", p, 8), "epl")
     want = torch.bucketize(gam, torch.tensor(NF.EPL_GAMMA_EDGES, dtype=F64))
     assert torch.equal(cls, want)
     assert cls.min() == 0 and cls.max() == len(NF.EPL_GAMMA_EDGES)
-    nfw = PK.member_table("nfw", {"r_s": torch.ones(1, 3), "alpha_rs": torch.ones(1, 3), "x": torch.zeros(1, 3),
-                                  "y": torch.zeros(1, 3)}, 0)
+    nfw = PK.member_table(
+        "nfw",
+        {
+            "r_s": torch.ones(1, 3),
+            "alpha_rs": torch.ones(1, 3),
+            "x": torch.zeros(1, 3),
+            "y": torch.zeros(1, 3),
+        },
+        0,
+    )
     assert torch.equal(NF.constant_class(nfw, "nfw"), torch.zeros(1, 3, dtype=torch.long))
     for table in (NF.ERROR_CONSTANTS, NF.EDGE_ERROR_CONSTANTS):
         for profile, by_order in table.items():
-            for order, rows in by_order.items():
+            for _order, rows in by_order.items():
                 assert len(rows) == (len(NF.EPL_GAMMA_EDGES) + 1 if profile == "epl" else 1)
                 assert all(len(r) == len(NF.RHO_LADDER) for r in rows)
 
@@ -132,7 +165,13 @@ def test_member_rungs_rejects_unknown_order():
 
 
 def test_population_tables_name_a_missing_parameter():
-    flat = {"amp": np.ones(2), "gamma": np.full(2, 2.0), "e1": np.zeros(2), "e2": np.zeros(2), "x": np.zeros(2)}
+    flat = {
+        "amp": np.ones(2),
+        "gamma": np.full(2, 2.0),
+        "e1": np.zeros(2),
+        "e2": np.zeros(2),
+        "x": np.zeros(2),
+    }
     with pytest.raises(ValueError, match="'y'"):
         populations.pack_population("epl", flat, np.array([2]), 8, F64, "cpu")
     with pytest.raises(ValueError, match="'y'"):

@@ -11,9 +11,9 @@ import pytest  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from subslope.figures import paper as figures  # noqa: E402
+from subslope.figures.save import save_figure  # noqa: E402
 from subslope.stats.calibration import calibration_table, expected_coverage, split, wilks_coverage  # noqa: E402
 from subslope.stats.intervals import gamma_grid, interval, test_statistic  # noqa: E402
-from subslope.figures.save import save_figure  # noqa: E402
 
 G = gamma_grid()
 RUN = "tiny-test"
@@ -30,7 +30,9 @@ def _check_saved(fig, tmp_path, stem):
         assert p.is_file() and p.stat().st_size > 1000
     assert paths[0].read_bytes()[:4] == b"%PDF"
     assert paths[1].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert not [q for q in (tmp_path / "out").iterdir() if q.name.endswith(".tmp")]  # no temporary left
+    assert not [
+        q for q in (tmp_path / "out").iterdir() if q.name.endswith(".tmp")
+    ]  # no temporary left
     assert any(f"run_name={RUN!r}" in t for t in _footer_texts(fig))
     return paths
 
@@ -45,14 +47,17 @@ def scatter_data(rng):
 
 def test_validation_and_stack_scatter(scatter_data, tmp_path):
     gt, m, lo, hi = scatter_data
-    fig = figures.validation_scatter(gt, m, lo, hi, run_name=RUN, open_lower=lo <= 1.1, open_upper=hi >= 2.9,
-                                     threshold=1.02)
+    fig = figures.validation_scatter(
+        gt, m, lo, hi, run_name=RUN, open_lower=lo <= 1.1, open_upper=hi >= 2.9, threshold=1.02
+    )
     (ax,) = fig.axes
     inside = ((gt > 1.2) & (gt < 2.8)).sum()
     assert len(ax.containers) == 2  # closed intervals, intervals open at a prior edge
     n_points = sum(len(c[0].get_xdata()) for c in ax.containers)  # c[0]: the markers of an errorbar
     assert n_points == inside  # only 1.2 < γ < 2.8
-    assert ax.get_legend() is not None and "1:1" in [t.get_text() for t in ax.get_legend().get_texts()]
+    assert ax.get_legend() is not None and "1:1" in [
+        t.get_text() for t in ax.get_legend().get_texts()
+    ]
     _check_saved(fig, tmp_path, "fig2_validation")
     fig3 = figures.stack_scatter(gt[:30], m[:30], lo[:30], hi[:30], run_name=RUN, threshold=1.1)
     assert "13" in fig3.get_suptitle()
@@ -69,7 +74,11 @@ def test_concentration_grid(rng, tmp_path):
     (ax,) = fig.axes
     assert ax.get_xscale() == "log"
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert any("NFW" in s for s in labels) and any("tNFW" in s for s in labels) and any("HST" in s for s in labels)
+    assert (
+        any("NFW" in s for s in labels)
+        and any("tNFW" in s for s in labels)
+        and any("HST" in s for s in labels)
+    )
     assert any("CDM" in t.get_text() for t in ax.texts)  # the a = 1 mark
     assert any(np.allclose(line.get_xdata(), 1.0) for line in ax.lines)
     _check_saved(fig, tmp_path, "fig4_concentration")
@@ -100,13 +109,18 @@ def test_hst_profiles_and_combined(tmp_path):
     labels = [x.get_text() for x in ax.get_legend().get_texts()]
     assert sum("a$ = 1" in s for s in labels) == 2
     assert any("MLE" in x.get_text() for x in ax.texts)
-    vlines = [line.get_xdata()[0] for line in ax.lines if np.ptp(line.get_xdata()) == 0 and len(line.get_xdata()) == 2]
+    vlines = [
+        line.get_xdata()[0]
+        for line in ax.lines
+        if np.ptp(line.get_xdata()) == 0 and len(line.get_xdata()) == 2
+    ]
     np.testing.assert_allclose(sorted(vlines), [iv.lower, iv.upper])
     _check_saved(fig6, tmp_path, "fig6_hst_combined")
     # A multimodal / edge interval is said so in the annotation.
     bi = np.maximum(_lnr(1.5, 0.05), _lnr(2.5, 0.05) - 0.2)
-    fig = figures.hst_combined(G, bi, 0.989, None, None, interval=interval(bi, G, 0.989), run_name=RUN,
-                               kind="log_ratio")
+    fig = figures.hst_combined(
+        G, bi, 0.989, None, None, interval=interval(bi, G, 0.989), run_name=RUN, kind="log_ratio"
+    )
     assert any("hull of 2 regions" in x.get_text() for x in fig.axes[0].texts)
 
 

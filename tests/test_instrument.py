@@ -99,9 +99,13 @@ def test_gaussian_psf_fwhm_and_moments():
     var = float((g.sum(0) * i**2).sum())
     assert var == pytest.approx(sigma**2 + 1.0 / 12.0, rel=1e-3)  # pixel-integrated
     gs = gaussian_psf(fwhm, pix, 41, integrate=False)
-    assert float((gs.sum(0) * (torch.arange(41) - 20.0) ** 2).sum()) == pytest.approx(sigma**2, rel=1e-6)
+    assert float((gs.sum(0) * (torch.arange(41) - 20.0) ** 2).sum()) == pytest.approx(
+        sigma**2, rel=1e-6
+    )
     assert psf_fwhm(gs, pix) == pytest.approx(fwhm, rel=0.03)
-    assert psf_fwhm(gaussian_psf(0.2, pix, 41, integrate=False), pix) == pytest.approx(0.2, rel=0.03)
+    assert psf_fwhm(gaussian_psf(0.2, pix, 41, integrate=False), pix) == pytest.approx(
+        0.2, rel=0.03
+    )
     with pytest.raises(ValueError, match="size"):
         gaussian_psf(fwhm, pix, 12)
 
@@ -130,7 +134,9 @@ def test_convolution_is_a_true_convolution_and_conserves_flux():
     img[0, 10, 10] = 1.0
     for m in ("direct", "fft"):
         out = convolve(img, k, m)
-        assert float(out[0, 10, 11]) == pytest.approx(1.0) and float(out.sum()) == pytest.approx(1.0)
+        assert float(out[0, 10, 11]) == pytest.approx(1.0) and float(out.sum()) == pytest.approx(
+            1.0
+        )
     # a compact source away from the edges keeps its flux
     x = torch.arange(60, dtype=torch.float64) - 29.5
     src = torch.exp(-(x[None, :] ** 2 + x[:, None] ** 2) / 20.0)
@@ -174,7 +180,9 @@ def test_noise_variance_matches_sigma_map(poisson):
 
 
 def test_noise_seeded_and_reproducible(dtype):
-    img = torch.rand(2, 100, 100, generator=torch.Generator().manual_seed(5), dtype=torch.float64).to(dtype)
+    img = torch.rand(
+        2, 100, 100, generator=torch.Generator().manual_seed(5), dtype=torch.float64
+    ).to(dtype)
     a = add_noise(img, 7)
     b = add_noise(img, torch.Generator().manual_seed(7))
     c = add_noise(img, 8)

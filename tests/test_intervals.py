@@ -39,7 +39,9 @@ def test_stack_is_sum_of_profiles(rng):
     p = rng.normal(size=(20, G.size))
     np.testing.assert_allclose(stack(p[:5]), p[0] + p[1] + p[2] + p[3] + p[4], rtol=1e-12)
     idx = np.array([[0, 3, 7], [1, 2, 19]])
-    np.testing.assert_allclose(stack(p, idx), np.stack([p[0] + p[3] + p[7], p[1] + p[2] + p[19]]), rtol=1e-12)
+    np.testing.assert_allclose(
+        stack(p, idx), np.stack([p[0] + p[3] + p[7], p[1] + p[2] + p[19]]), rtol=1e-12
+    )
     np.testing.assert_allclose(stack(p.reshape(4, 5, -1)), p.reshape(4, 5, -1).sum(1))
     labels = np.repeat(["b", "a"], 10)
     out = stack(p, labels)  # np.unique order: "a" then "b"
@@ -102,7 +104,8 @@ def test_test_statistic_nonnegative_and_zero_at_mle(rng):
 def test_interval_parabola_crossings():
     mu, s, tau = 2.13456, 0.1, 0.989
     iv = interval(parabola(mu, s), G, tau)
-    # Linear interpolation of a parabola between nodes 0.01 apart: error ≤ h²/(8 s²)·s/(2√τ)/… ≪ 1e-3.
+    # Linear interpolation of a parabola between nodes 0.01 apart: error ≤ h²/(8 s²)·s/(2√τ)/… ≪
+    # 1e-3.
     assert iv.lower == pytest.approx(mu - s * np.sqrt(tau), abs=3e-4)
     assert iv.upper == pytest.approx(mu + s * np.sqrt(tau), abs=3e-4)
     assert iv.mle == pytest.approx(mu, abs=1e-10)
@@ -199,8 +202,16 @@ def test_log_ratio_profiles_real_estimator_matches_log_ratio_grid(rng):
     model = build_model({"preset": "reduced"}, gamma_mean=2.0, gamma_std=0.5).eval()
     images = rng.normal(1.0, 1.0, size=(3, 100, 100)).astype(np.float32)
     grid = gamma_grid(n=11)
-    out = log_ratio_profiles(model, images, 1.1, 0.0, 0.0, (1.0, 1.0), grid, batch_size=2, device="cpu")
+    out = log_ratio_profiles(
+        model, images, 1.1, 0.0, 0.0, (1.0, 1.0), grid, batch_size=2, device="cpu"
+    )
     with torch.no_grad():
-        ref = model.log_ratio_grid(torch.as_tensor(preprocess(images, 1.1, 0.0, 0.0, 1.0, 1.0)),
-                                   torch.as_tensor(grid, dtype=torch.float32)).double().numpy()
+        ref = (
+            model.log_ratio_grid(
+                torch.as_tensor(preprocess(images, 1.1, 0.0, 0.0, 1.0, 1.0)),
+                torch.as_tensor(grid, dtype=torch.float32),
+            )
+            .double()
+            .numpy()
+        )
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)

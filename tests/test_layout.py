@@ -19,10 +19,17 @@ SRC = REPO_ROOT / "src" / "subslope"
 #: Rooms of the package by layer: a module imports only from its own room or from
 #: rooms of a lower layer (inside functions too).
 LAYERS = {
-    "_version": 0, "config": 0, "ragged": 0, "devices": 0, "logs": 0,
-    "physics": 1, "stats": 1,
-    "render": 2, "io": 2,
-    "simulation": 3, "nre": 3,
+    "_version": 0,
+    "config": 0,
+    "ragged": 0,
+    "devices": 0,
+    "logs": 0,
+    "physics": 1,
+    "stats": 1,
+    "render": 2,
+    "io": 2,
+    "simulation": 3,
+    "nre": 3,
     "validation": 4,
     "figures": 5,
     "stages": 6,
@@ -97,7 +104,7 @@ def test_no_import_cycles():
         state[node] = 1
         for nxt in sorted(GRAPH[node]):
             if state.get(nxt) == 1:
-                cycles.append(" -> ".join(stack[stack.index(nxt):] + [nxt]))
+                cycles.append(" -> ".join(stack[stack.index(nxt) :] + [nxt]))
             elif nxt not in state:
                 visit(nxt, stack + [nxt])
         state[node] = 2
@@ -109,15 +116,20 @@ def test_no_import_cycles():
 
 
 def test_module_and_function_sizes():
-    long_modules = [f"{p.relative_to(REPO_ROOT)}: {n} lines" for p in MODULES.values()
-                    if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
+    long_modules = [
+        f"{p.relative_to(REPO_ROOT)}: {n} lines"
+        for p in MODULES.values()
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    ]
     long_functions = []
     for path in MODULES.values():
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 n = node.end_lineno - node.lineno + 1
                 if n > MAX_FUNCTION_LINES:
-                    long_functions.append(f"{path.relative_to(REPO_ROOT)}:{node.lineno} {node.name}: {n} lines")
+                    long_functions.append(
+                        f"{path.relative_to(REPO_ROOT)}:{node.lineno} {node.name}: {n} lines"
+                    )
     assert not long_modules and not long_functions, "\n".join(long_modules + long_functions)
 
 
@@ -128,21 +140,34 @@ def _private_uses(path: Path) -> list[str]:
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("subslope"):
             for a in node.names:
                 if a.name.startswith("_") and not a.name.startswith("__"):
-                    out.append(f"{path.relative_to(REPO_ROOT)}:{node.lineno} imports {node.module}.{a.name}")
+                    out.append(
+                        f"{path.relative_to(REPO_ROOT)}:{node.lineno} imports "
+                        f"{node.module}.{a.name}"
+                    )
                 aliases[a.asname or a.name] = f"{node.module}.{a.name}"
         elif isinstance(node, ast.Import):
             for a in node.names:
                 if a.name.startswith("subslope"):
                     aliases[(a.asname or a.name).split(".")[0]] = a.name
     for node in ast.walk(tree):
-        if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
-                and isinstance(node.value, ast.Name) and node.value.id in aliases):
-            out.append(f"{path.relative_to(REPO_ROOT)}:{node.lineno} uses {aliases[node.value.id]}.{node.attr}")
+        if (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+            and isinstance(node.value, ast.Name)
+            and node.value.id in aliases
+        ):
+            out.append(
+                f"{path.relative_to(REPO_ROOT)}:{node.lineno} uses "
+                f"{aliases[node.value.id]}.{node.attr}"
+            )
     return out
 
 
 def test_tests_and_benchmarks_use_public_names_only():
-    files = sorted((REPO_ROOT / "tests").rglob("*.py")) + sorted((REPO_ROOT / "benchmarks").rglob("*.py"))
+    files = sorted((REPO_ROOT / "tests").rglob("*.py")) + sorted(
+        (REPO_ROOT / "benchmarks").rglob("*.py")
+    )
     uses = [line for path in files for line in _private_uses(path)]
     assert not uses, "\n".join(uses)
 
@@ -151,15 +176,22 @@ def test_docs_module_map_matches_the_package():
     text = (REPO_ROOT / "docs" / "index.md").read_text(encoding="utf-8")
     documented = set(re.findall(r"`(subslope(?:\.[a-z_0-9]+)*)`", text))
     modules = {m for m in MODULES if not m.split(".")[-1].startswith("_")}
-    assert modules - documented == set(), f"modules missing from docs/index.md: {sorted(modules - documented)}"
+    assert modules - documented == set(), (
+        f"modules missing from docs/index.md: {sorted(modules - documented)}"
+    )
     stale = {m for m in documented if m not in MODULES and not _is_attribute(m)}
     assert not stale, f"docs/index.md names modules that do not exist: {sorted(stale)}"
 
 
 def _is_attribute(dotted: str) -> bool:
     module, _, attr = dotted.rpartition(".")
-    return module in MODULES and re.search(rf"^(def|class) {attr}\b|^{attr} = ", MODULES[module].read_text(
-        encoding="utf-8"), re.M) is not None
+    return (
+        module in MODULES
+        and re.search(
+            rf"^(def|class) {attr}\b|^{attr} = ", MODULES[module].read_text(encoding="utf-8"), re.M
+        )
+        is not None
+    )
 
 
 def test_every_render_setting_is_a_config_key():
@@ -167,7 +199,9 @@ def test_every_render_setting_is_a_config_key():
     from subslope.render.settings import INSTRUMENT_FIELDS, NOT_RENDER_KEYS, RenderSettings
 
     schema = load_schema()["properties"]
-    render_keys = set(schema["simulation"]["properties"]["render"]["properties"]) - set(NOT_RENDER_KEYS)
+    render_keys = set(schema["simulation"]["properties"]["render"]["properties"]) - set(
+        NOT_RENDER_KEYS
+    )
     fields = {f.name for f in dataclasses.fields(RenderSettings)}
     assert fields - set(INSTRUMENT_FIELDS) == render_keys
     assert set(INSTRUMENT_FIELDS) <= set(schema["instrument"]["properties"])
@@ -188,17 +222,32 @@ def test_render_defaults_are_the_schema_defaults():
 def test_planning_imports_no_heavy_library():
     """What the workflow imports to plan a run (``snakemake -n``) needs no torch, h5py,
     matplotlib, astropy or colossus."""
-    code = ("import sys, subslope.config, subslope.stages.plan, subslope.stages.train, subslope.io.resources, "
-            "subslope.simulation.scenes, subslope\n"
-            "heavy = sorted({m.split('.')[0] for m in sys.modules} & "
-            "{'torch', 'h5py', 'matplotlib', 'astropy', 'colossus', 'pooch'})\n"
-            "print(','.join(heavy))")
+    code = (
+        "import sys, subslope.config, subslope.stages.plan, subslope.stages.train, "
+        "subslope.io.resources, "
+        "subslope.simulation.scenes, subslope\n"
+        "heavy = sorted({m.split('.')[0] for m in sys.modules} & "
+        "{'torch', 'h5py', 'matplotlib', 'astropy', 'colossus', 'pooch'})\n"
+        "print(','.join(heavy))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", out.stdout
 
 
-@pytest.mark.parametrize("flag", ["gallery", "simulate", "train", "evaluate", "calibrate", "cdm_grid", "hst",
-                                  "figures", "summary"])
+@pytest.mark.parametrize(
+    "flag",
+    [
+        "gallery",
+        "simulate",
+        "train",
+        "evaluate",
+        "calibrate",
+        "cdm_grid",
+        "hst",
+        "figures",
+        "summary",
+    ],
+)
 def test_stage_flag_rule_file_and_module_share_a_name(flag):
     from subslope.config import STAGE_NEEDS, schema_defaults
 
@@ -214,12 +263,21 @@ def test_subhalo_profiles_of_schema_scenes_and_registry_agree():
     from subslope.simulation.scenes import LOS_PROFILES, SUBHALO_PROFILES
 
     text = (SRC / "schemas" / "config.schema.yaml").read_text(encoding="utf-8")
-    enums = [node for node in _walk(yaml.safe_load(text)) if isinstance(node, dict) and "enum" in node
-             and set(node["enum"]) & {"epl", "nfw", "tnfw"} and "epl" in node["enum"]]
+    enums = [
+        node
+        for node in _walk(yaml.safe_load(text))
+        if isinstance(node, dict)
+        and "enum" in node
+        and set(node["enum"]) & {"epl", "nfw", "tnfw"}
+        and "epl" in node["enum"]
+    ]
     assert enums, "the schema lists no subhalo profile enum"
     assert set(SUBHALO_PROFILES) == set(PAIR_PROFILES)
     assert set(LOS_PROFILES) <= set(PAIR_PROFILES)
-    assert {frozenset(e["enum"]) for e in enums} <= {frozenset(SUBHALO_PROFILES), frozenset(LOS_PROFILES)}
+    assert {frozenset(e["enum"]) for e in enums} <= {
+        frozenset(SUBHALO_PROFILES),
+        frozenset(LOS_PROFILES),
+    }
 
 
 def _walk(node):

@@ -21,7 +21,6 @@ from subslope.physics.light import (
 )
 from subslope.physics.light.sersic import e1e2_to_q_phi, elliptical_radius_squared
 
-
 # ------------------------------------------------------------------------- Sérsic
 
 
@@ -82,7 +81,9 @@ def test_elliptical_radius_matches_rotated_frame():
     q, phi = e1e2_to_q_phi(e1, e2)
     xr = torch.cos(phi) * x + torch.sin(phi) * y
     yr = -torch.sin(phi) * x + torch.cos(phi) * y
-    assert torch.allclose(elliptical_radius_squared(x, y, e1, e2), q * xr**2 + yr**2 / q, rtol=1e-12)
+    assert torch.allclose(
+        elliptical_radius_squared(x, y, e1, e2), q * xr**2 + yr**2 / q, rtol=1e-12
+    )
 
 
 def test_sersic_centre_finite_float32_and_precision(dtype):
@@ -129,7 +130,9 @@ def test_pixelated_flux_conservation_unlensed(rng, dtype):
     for order in ("bilinear", "bicubic"):
         # a finer (0.01″), larger grid, rotated and off-centre source
         x, y = pixel_grid(120, 0.01, dtype=dtype)
-        sb = pixelated_light(x, y, stamp, ds, angle=0.37, center_x=0.05, center_y=-0.04, order=order)
+        sb = pixelated_light(
+            x, y, stamp, ds, angle=0.37, center_x=0.05, center_y=-0.04, order=order
+        )
         flux = float(sb.double().sum()) * 0.01**2
         assert flux == pytest.approx(flux_true, rel=1e-4), order  # measured ~2e-6
 
@@ -175,8 +178,9 @@ def test_pixelated_batched_padding(rng):
     yb = y.reshape(1, -1).expand(2, -1)
     ds = torch.tensor([[0.03], [0.025]], dtype=torch.float64)
     ang = torch.tensor([[0.3], [-1.1]], dtype=torch.float64)
-    out = pixelated_light(xb, yb, stamps, ds, ang, 0.01, 0.02,
-                          stamp_offset_x=off[:, 0:1], stamp_offset_y=off[:, 1:2])
+    out = pixelated_light(
+        xb, yb, stamps, ds, ang, 0.01, 0.02, stamp_offset_x=off[:, 0:1], stamp_offset_y=off[:, 1:2]
+    )
     assert out.shape == (2, 900)
     for k, s in enumerate([a, b]):
         single = pixelated_light(x, y, s, float(ds[k]), float(ang[k]), 0.01, 0.02)

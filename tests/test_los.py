@@ -287,7 +287,11 @@ def test_same_seed_same_output_and_batch_consistency():
 )
 def test_bad_inputs_name_argument(kwargs, name):
     args = dict(
-        z_lens=Z_L, z_source=Z_S, theta_e=1.1, gamma_ml=2.0, delta_los=1.0,
+        z_lens=Z_L,
+        z_source=Z_S,
+        theta_e=1.1,
+        gamma_ml=2.0,
+        delta_los=1.0,
         rng=np.random.default_rng(0),
     )
     args.update(kwargs)

@@ -2,18 +2,19 @@
 
 from __future__ import annotations
 
-
 import pytest
 import torch
 from lensing_checks import fd_grad, ring_points
 
-from subslope.physics.profiles.multipole import (multipole_convergence, multipole_deflection,
-                                         multipole_potential)
+from subslope.physics.profiles.multipole import (
+    multipole_convergence,
+    multipole_deflection,
+    multipole_potential,
+)
 from subslope.physics.profiles.shear import shear_convergence, shear_deflection, shear_potential
 from subslope.physics.profiles.sheet import sheet_convergence, sheet_deflection, sheet_potential
 
 F64 = torch.float64
-
 
 
 def _check_identities(defl, conv, pot, x, y, rtol=1e-8, atol=1e-10, h=1e-3):
@@ -33,13 +34,20 @@ def test_multipole_identities(m, a_m, phi_m, cx, cy, rng):
     x, y = ring_points(rng, lo=0.2)
     x, y = x + cx, y + cy
     args = (m, a_m, phi_m, cx, cy)
-    _check_identities(lambda a, b: multipole_deflection(a, b, *args),
-                      lambda a, b: multipole_convergence(a, b, *args),
-                      lambda a, b: multipole_potential(a, b, *args), x, y, atol=1e-9, h=2e-4)
+    _check_identities(
+        lambda a, b: multipole_deflection(a, b, *args),
+        lambda a, b: multipole_convergence(a, b, *args),
+        lambda a, b: multipole_potential(a, b, *args),
+        x,
+        y,
+        atol=1e-9,
+        h=2e-4,
+    )
 
 
 def test_multipole_closed_form_kappa():
-    """kappa = a_m cos(m(theta - phi_m)) / (2 r), the lenstronomy convention (docs/simulation.md)."""
+    """kappa = a_m cos(m(theta - phi_m)) / (2 r), the lenstronomy convention
+    (docs/simulation.md)."""
     r, th = torch.tensor([0.5, 1.0, 2.0], dtype=F64), torch.tensor([0.2, -1.3, 2.9], dtype=F64)
     for m in (3, 4):
         k = multipole_convergence(r * torch.cos(th), r * torch.sin(th), m, 0.04, 0.7)
@@ -56,7 +64,7 @@ def test_multipole_centre_and_dtype(dtype):
     for m in (3, 4):
         for f in (multipole_deflection, multipole_convergence, multipole_potential):
             out = f(x.reshape(1, -1), y.reshape(1, -1), m, a_m, torch.zeros_like(a_m))
-            for v in (out if isinstance(out, tuple) else (out,)):
+            for v in out if isinstance(out, tuple) else (out,):
                 assert v.dtype == dtype and v.shape == (2, 16) and torch.isfinite(v).all()
     with pytest.raises(ValueError, match="m must"):
         multipole_deflection(x, y, 1, 0.1, 0.0)
@@ -67,19 +75,29 @@ def test_multipole_centre_and_dtype(dtype):
 @pytest.mark.parametrize("g1,g2,x0,y0", [(0.05, -0.08, 0.0, 0.0), (-0.1, 0.1, 0.2, -0.3)])
 def test_shear_identities(g1, g2, x0, y0, rng):
     x, y = ring_points(rng, lo=0.0)
-    _check_identities(lambda a, b: shear_deflection(a, b, g1, g2, x0, y0),
-                      lambda a, b: shear_convergence(a, b, g1, g2, x0, y0),
-                      lambda a, b: shear_potential(a, b, g1, g2, x0, y0), x, y)
-    ax, ay = shear_deflection(torch.tensor([1.0 + x0], dtype=F64), torch.tensor([y0], dtype=F64), g1, g2, x0, y0)
+    _check_identities(
+        lambda a, b: shear_deflection(a, b, g1, g2, x0, y0),
+        lambda a, b: shear_convergence(a, b, g1, g2, x0, y0),
+        lambda a, b: shear_potential(a, b, g1, g2, x0, y0),
+        x,
+        y,
+    )
+    ax, ay = shear_deflection(
+        torch.tensor([1.0 + x0], dtype=F64), torch.tensor([y0], dtype=F64), g1, g2, x0, y0
+    )
     assert ax.item() == pytest.approx(g1) and ay.item() == pytest.approx(g2)
 
 
 @pytest.mark.parametrize("kappa0,cx,cy", [(0.1, 0.0, 0.0), (-0.03, 0.2, -0.1)])
 def test_sheet_identities(kappa0, cx, cy, rng):
     x, y = ring_points(rng, lo=0.0)
-    _check_identities(lambda a, b: sheet_deflection(a, b, kappa0, cx, cy),
-                      lambda a, b: sheet_convergence(a, b, kappa0, cx, cy),
-                      lambda a, b: sheet_potential(a, b, kappa0, cx, cy), x, y)
+    _check_identities(
+        lambda a, b: sheet_deflection(a, b, kappa0, cx, cy),
+        lambda a, b: sheet_convergence(a, b, kappa0, cx, cy),
+        lambda a, b: sheet_potential(a, b, kappa0, cx, cy),
+        x,
+        y,
+    )
 
 
 def test_broadcast_population(dtype):
@@ -99,6 +117,9 @@ def test_broadcast_population(dtype):
 @pytest.mark.gpu
 def test_cuda_paths():
     x = torch.linspace(-2, 2, 50, device="cuda")
-    for out in (multipole_deflection(x, x.flip(0), 3, 0.05, 0.3), shear_deflection(x, x, 0.1, 0.0),
-                sheet_deflection(x, x, -0.02)):
+    for out in (
+        multipole_deflection(x, x.flip(0), 3, 0.05, 0.3),
+        shear_deflection(x, x, 0.1, 0.0),
+        sheet_deflection(x, x, -0.02),
+    ):
         assert out[0].device.type == "cuda" and torch.isfinite(out[0]).all()

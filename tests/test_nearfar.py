@@ -25,13 +25,13 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.render import pipeline as R
-from subslope.render import counters
 from subslope.physics.grid import pixel_grid
 from subslope.physics.instrument import noise_sigma_map
-from subslope.simulation.los import LosPopulation
-from subslope.render.nearfar import GridBlock, interpolation_matrix, node_indices, split_pass
 from subslope.physics.pairs.sums import direct_sums, far_sums, member_table, near_tile_sums
+from subslope.render import counters
+from subslope.render import pipeline as R
+from subslope.render.nearfar import GridBlock, interpolation_matrix, node_indices, split_pass
+from subslope.simulation.los import LosPopulation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_render import PSF, los_of, macro_of, subs_of  # noqa: E402
@@ -57,13 +57,19 @@ def grid(m: int, step: float) -> tuple[torch.Tensor, torch.Tensor]:
     return x.reshape(1, -1), y.reshape(1, -1)
 
 
-def epl_params(n: int, rng: np.random.Generator, *, extent: float, log_amp=(-4.0, -1.0),
-               gamma=(1.05, 2.95)) -> dict[str, np.ndarray]:
+def epl_params(
+    n: int, rng: np.random.Generator, *, extent: float, log_amp=(-4.0, -1.0), gamma=(1.05, 2.95)
+) -> dict[str, np.ndarray]:
     e = rng.uniform(0, 0.28, n)
     phi = rng.uniform(0, np.pi, n)
-    return {"amp": 10 ** rng.uniform(*log_amp, n), "gamma": rng.uniform(*gamma, n),
-            "e1": e * np.cos(2 * phi), "e2": e * np.sin(2 * phi),
-            "x": rng.uniform(-extent, extent, n), "y": rng.uniform(-extent, extent, n)}
+    return {
+        "amp": 10 ** rng.uniform(*log_amp, n),
+        "gamma": rng.uniform(*gamma, n),
+        "e1": e * np.cos(2 * phi),
+        "e2": e * np.sin(2 * phi),
+        "x": rng.uniform(-extent, extent, n),
+        "y": rng.uniform(-extent, extent, n),
+    }
 
 
 def table_of(*images: dict[str, np.ndarray]) -> torch.Tensor:
@@ -74,17 +80,40 @@ def table_of(*images: dict[str, np.ndarray]) -> torch.Tensor:
     for k in EPL_KEYS:
         arr = np.full((len(images), n), EPL_PAD[k])
         for i, p in enumerate(images):
-            arr[i, :len(p[k])] = p[k]
+            arr[i, : len(p[k])] = p[k]
         params[k] = torch.as_tensor(arr, dtype=F64)
     return member_table("epl", params, N_TERMS)
 
 
-def run_split(table, x, y, blocks, sheet_block=0, *, spacing=DEF_SPACING, order=DEF_ORDER, tolerance=DEF_TOL,
-              displaced=False, base=None):
+def run_split(
+    table,
+    x,
+    y,
+    blocks,
+    sheet_block=0,
+    *,
+    spacing=DEF_SPACING,
+    order=DEF_ORDER,
+    tolerance=DEF_TOL,
+    displaced=False,
+    base=None,
+):
     b = table.shape[0]
-    return split_pass(table, "epl", x.expand(b, -1).contiguous(), y.expand(b, -1).contiguous(), list(blocks),
-                      sheet_block, spacing=spacing, order=order, tolerance=tolerance, displaced=displaced,
-                      base=base, kernels=KERNELS, max_elements=2**22)
+    return split_pass(
+        table,
+        "epl",
+        x.expand(b, -1).contiguous(),
+        y.expand(b, -1).contiguous(),
+        list(blocks),
+        sheet_block,
+        spacing=spacing,
+        order=order,
+        tolerance=tolerance,
+        displaced=displaced,
+        base=base,
+        kernels=KERNELS,
+        max_elements=2**22,
+    )
 
 
 def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -118,9 +147,9 @@ def test_interpolation_matrix(m, spacing, order):
     t = torch.linspace(-1, 1, m, dtype=F64)
     coef = torch.as_tensor(np.random.default_rng(order + m).normal(size=order), dtype=F64)
     for deg in range(order):
-        f = t ** deg
+        f = t**deg
         assert float((L @ f[nd] - f).abs().max()) <= 1e-10, deg
-    f = sum(c * t ** k for k, c in enumerate(coef))
+    f = sum(c * t**k for k, c in enumerate(coef))
     assert float((L @ f[nd] - f).abs().max()) <= 1e-10
     # rows sum to one (a partition of unity)
     torch.testing.assert_close(L.sum(1), torch.ones(m, dtype=F64), rtol=0, atol=1e-12)
@@ -165,7 +194,9 @@ def test_exact_partition_contracted_rays():
     m = 40
     x0, y0 = grid(m, PIX)
     x, y = 0.8 * x0, 0.8 * y0
-    out = run_split(table, x, y, [GridBlock(0, m, PIX)], 0, spacing=PIX, displaced=True, base=(x0, y0))
+    out = run_split(
+        table, x, y, [GridBlock(0, m, PIX)], 0, spacing=PIX, displaced=True, base=(x0, y0)
+    )
     assert out is not None
     ex, ey, _ = direct_sums(x, y, table, "epl")
     scale = float(torch.hypot(ex, ey).max())
@@ -209,7 +240,9 @@ def test_blocks_must_cover_the_rays():
     table = table_of(epl_params(5, np.random.default_rng(0), extent=0.5))
     x, y = grid(16, PIX)
     with pytest.raises(ValueError, match="points"):
-        run_split(table, torch.cat([x, x[:, :3]], 1), torch.cat([y, y[:, :3]], 1), [GridBlock(0, 16, PIX)])
+        run_split(
+            table, torch.cat([x, x[:, :3]], 1), torch.cat([y, y[:, :3]], 1), [GridBlock(0, 16, PIX)]
+        )
 
 
 # --------------------------------------------------------------- 3. error control
@@ -220,9 +253,20 @@ def _error_members(n: int = 20) -> list[dict[str, float]]:
     e = np.concatenate([[0.28, 0.0, 0.28, 0.28], rng.uniform(0, 0.28, n - 4)])
     phi = rng.uniform(0, np.pi, n)
     # random positions with a random sub-pixel offset (some near the edges / corners)
-    pos = np.round(rng.uniform(-1.9, 1.9, (n, 2)) / PIX) * PIX + rng.uniform(-0.5, 0.5, (n, 2)) * PIX
-    return [{"amp": 10 ** log_amp[i], "gamma": gam[i], "e1": e[i] * np.cos(2 * phi[i]),
-             "e2": e[i] * np.sin(2 * phi[i]), "x": pos[i, 0], "y": pos[i, 1]} for i in range(n)]
+    pos = (
+        np.round(rng.uniform(-1.9, 1.9, (n, 2)) / PIX) * PIX + rng.uniform(-0.5, 0.5, (n, 2)) * PIX
+    )
+    return [
+        {
+            "amp": 10 ** log_amp[i],
+            "gamma": gam[i],
+            "e1": e[i] * np.cos(2 * phi[i]),
+            "e2": e[i] * np.sin(2 * phi[i]),
+            "x": pos[i, 0],
+            "y": pos[i, 1],
+        }
+        for i in range(n)
+    ]
 
 
 ERROR_MEMBERS = _error_members()
@@ -241,15 +285,24 @@ def test_single_member_error_within_tolerance(i):
     assert err <= DEF_TOL, (ERROR_MEMBERS[i], err)
 
 
-@pytest.mark.parametrize("contraction", [
-    0.1,
-    0.2,
-])
+@pytest.mark.parametrize(
+    "contraction",
+    [
+        0.1,
+        0.2,
+    ],
+)
 def test_single_member_error_with_distorted_rays(contraction):
     """Rays contracted uniformly (displacement gradient 0.1 / 0.2 per grid step, below the
     0.25 fallback), renderer defaults: a massive member's error stays within tolerance."""
-    p = {"amp": np.array([0.1]), "gamma": np.array([1.5]), "e1": np.array([0.1]), "e2": np.array([0.0]),
-         "x": np.array([0.113]), "y": np.array([-0.207])}
+    p = {
+        "amp": np.array([0.1]),
+        "gamma": np.array([1.5]),
+        "e1": np.array([0.1]),
+        "e2": np.array([0.0]),
+        "x": np.array([0.113]),
+        "y": np.array([-0.207]),
+    }
     table = table_of(p)
     x0, y0 = grid(100, PIX)
     x, y = (1 - contraction) * x0, (1 - contraction) * y0
@@ -298,7 +351,9 @@ def test_all_padding_image_is_exactly_zero():
     x, y = grid(m, PIX)
     ax, ay, k_sum = run_split(table_of(p0, empty), x, y, [GridBlock(0, m, PIX)], 0)
     assert float(ax[0].abs().max()) > 0
-    assert torch.equal(ax[1], torch.zeros_like(ax[1])) and torch.equal(ay[1], torch.zeros_like(ay[1]))
+    assert torch.equal(ax[1], torch.zeros_like(ax[1])) and torch.equal(
+        ay[1], torch.zeros_like(ay[1])
+    )
     assert float(k_sum[1]) == 0.0
 
 
@@ -344,7 +399,9 @@ def test_mild_distortion_is_interpolated():
     dx, dy = _sin_displacement(x0, y0, amp=0.003)
     table = table_of(epl_params(30, np.random.default_rng(5), extent=0.7))
     counters.reset_step_counts()
-    ax, ay, _ = run_split(table, x0 - dx, y0 - dy, [GridBlock(0, 40, PIX)], 0, displaced=True, base=(x0, y0))
+    ax, ay, _ = run_split(
+        table, x0 - dx, y0 - dy, [GridBlock(0, 40, PIX)], 0, displaced=True, base=(x0, y0)
+    )
     assert counters.STEP_COUNTS["split_rough_tiles"] == 0
     ex, ey, _ = direct_sums(x0 - dx, y0 - dy, table, "epl")
     assert float(torch.hypot(ax - ex, ay - ey).max()) <= 30 * DEF_TOL
@@ -362,47 +419,84 @@ def test_render_exact_near_massive_foreground_halo():
     m["z_lens"][:] = 0.2
     m["z_source"][:] = 0.6
     subs = subs_of([80], seed=22)
-    los = LosPopulation(profile="epl", counts=np.array([1]), z=np.array([0.055]), x=np.array([0.513]),
-                        y=np.array([-0.327]), m200=np.array([1e11]), amp=np.array([0.35]),
-                        gamma=np.array([2.0]), e1=np.array([0.05]), e2=np.array([-0.03]))
+    los = LosPopulation(
+        profile="epl",
+        counts=np.array([1]),
+        z=np.array([0.055]),
+        x=np.array([0.513]),
+        y=np.array([-0.327]),
+        m200=np.array([1e11]),
+        amp=np.array([0.35]),
+        gamma=np.array([2.0]),
+        e1=np.array([0.05]),
+        e2=np.array([-0.03]),
+    )
     base = R.RenderSettings(device="cpu", compile="off", dtype=F64, npix=60)
     counters.reset_step_counts()
     split = R.render(m, PSF, dataclasses.replace(base, population="split"), subhalos=subs, los=los)
     assert counters.STEP_COUNTS["split"] >= 2 and counters.STEP_COUNTS["split_rough_tiles"] >= 1
-    direct = R.render(m, PSF, dataclasses.replace(base, population="direct"), subhalos=subs, los=los)
+    direct = R.render(
+        m, PSF, dataclasses.replace(base, population="direct"), subhalos=subs, los=los
+    )
     assert torch.isfinite(split).all() and torch.isfinite(direct).all()
     assert _sigma_error(split, direct) <= 0.05
 
 
 # --------------------------------------------------------------- 6. settings validation
-@pytest.mark.parametrize("field,value", [
-    ("population", "fast"), ("population", "SPLIT"), ("population", None),
-    ("split_order", 5), ("split_order", 2), ("split_order", 10), ("split_order", "6"),
-    ("split_spacing", 0), ("split_spacing", -4), ("split_spacing", 65), ("split_spacing", 2.5),
-    ("split_spacing", True), ("split_spacing", "4"),
-    ("split_tolerance", 0.0), ("split_tolerance", -1e-4), ("split_tolerance", "1e-4"),
-    ("split_tolerance", float("nan")), ("split_tolerance", None),
-])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("population", "fast"),
+        ("population", "SPLIT"),
+        ("population", None),
+        ("split_order", 5),
+        ("split_order", 2),
+        ("split_order", 10),
+        ("split_order", "6"),
+        ("split_spacing", 0),
+        ("split_spacing", -4),
+        ("split_spacing", 65),
+        ("split_spacing", 2.5),
+        ("split_spacing", True),
+        ("split_spacing", "4"),
+        ("split_tolerance", 0.0),
+        ("split_tolerance", -1e-4),
+        ("split_tolerance", "1e-4"),
+        ("split_tolerance", float("nan")),
+        ("split_tolerance", None),
+    ],
+)
 def test_settings_validation(field, value):
     with pytest.raises(ValueError, match=field):
         R.RenderSettings(**{field: value})
 
 
 def test_settings_accept_valid_split_values():
-    for kw in ({"population": "split"}, {"population": "direct"}, {"population": "auto"}, {"split_order": 4},
-               {"split_order": 8}, {"split_spacing": 1}, {"split_spacing": 64}, {"split_tolerance": 1e-6},
-               {"split_tolerance": 1}):
+    for kw in (
+        {"population": "split"},
+        {"population": "direct"},
+        {"population": "auto"},
+        {"split_order": 4},
+        {"split_order": 8},
+        {"split_spacing": 1},
+        {"split_spacing": 64},
+        {"split_tolerance": 1e-6},
+        {"split_tolerance": 1},
+    ):
         R.RenderSettings(**kw)
 
 
 # --------------------------------------------------------------- 7. render-level agreement
-@pytest.mark.parametrize("seed,supersample", [
-    (31, 1),
-    (31, 2),
-    (106, 1),
-    (103, 1),
-    (102, 1),
-])
+@pytest.mark.parametrize(
+    "seed,supersample",
+    [
+        (31, 1),
+        (31, 2),
+        (106, 1),
+        (103, 1),
+        (102, 1),
+    ],
+)
 def test_render_split_matches_direct(seed, supersample):
     """Small train-like scene (200 subhalos on the arc, 5 LoS halos): split vs direct
     (float64, eager) agree to 0.05 σ_noise per pixel (half the image budget of
@@ -412,10 +506,14 @@ def test_render_split_matches_direct(seed, supersample):
     subs = subs_of([200], seed=seed + 1)
     los = los_of([5], seed=seed + 2)
     npix = 100 if supersample == 1 else 50
-    base = R.RenderSettings(device="cpu", compile="off", dtype=F64, npix=npix, supersample=supersample)
+    base = R.RenderSettings(
+        device="cpu", compile="off", dtype=F64, npix=npix, supersample=supersample
+    )
     counters.reset_step_counts()
     split = R.render(m, PSF, dataclasses.replace(base, population="split"), subhalos=subs, los=los)
     assert counters.STEP_COUNTS["split"] >= 2 and counters.STEP_COUNTS["multi_plane"] == 1
-    direct = R.render(m, PSF, dataclasses.replace(base, population="direct"), subhalos=subs, los=los)
+    direct = R.render(
+        m, PSF, dataclasses.replace(base, population="direct"), subhalos=subs, los=los
+    )
     assert torch.isfinite(split).all() and torch.isfinite(direct).all()
     assert _sigma_error(split, direct) <= 0.05

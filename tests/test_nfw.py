@@ -34,15 +34,23 @@ def _kappa_quad(x, tau=None):
     """kappa / (rho_0 R_s) = int rho_hat(sqrt(x^2 + z^2)) dz, by quadrature."""
     f = lambda z: _rho_hat(math.hypot(x, z), tau)  # noqa: E731
     edges = [0.0] + _breaks(x, 1.0, tau or 0.0) + [math.inf]
-    return 2.0 * sum(integrate.quad(f, a, b, epsabs=0, epsrel=1e-12, limit=200)[0] for a, b in zip(edges[:-1], edges[1:]))
+    return 2.0 * sum(
+        integrate.quad(f, a, b, epsabs=0, epsrel=1e-12, limit=200)[0]
+        for a, b in zip(edges[:-1], edges[1:])
+    )
 
 
 def _mass2d_quad(x, tau=None):
     """Cylinder mass M_2D(<x) / (rho_0 R_s^3) from the 3-D density (sphere + shell part)."""
-    inner = integrate.quad(lambda r: 4 * math.pi * r**2 * _rho_hat(r, tau), 0, x, epsabs=0, epsrel=1e-12, limit=200)[0]
+    inner = integrate.quad(
+        lambda r: 4 * math.pi * r**2 * _rho_hat(r, tau), 0, x, epsabs=0, epsrel=1e-12, limit=200
+    )[0]
     shell = lambda r: 4 * math.pi * r**2 * _rho_hat(r, tau) * (1 - math.sqrt(1 - (x / r) ** 2))  # noqa: E731
     edges = [x] + [b for b in _breaks(1.0, tau or 0.0, 10 * x) if b > x] + [math.inf]
-    outer = sum(integrate.quad(shell, a, b, epsabs=0, epsrel=1e-12, limit=200)[0] for a, b in zip(edges[:-1], edges[1:]))
+    outer = sum(
+        integrate.quad(shell, a, b, epsabs=0, epsrel=1e-12, limit=200)[0]
+        for a, b in zip(edges[:-1], edges[1:])
+    )
     return inner + outer
 
 
@@ -110,14 +118,23 @@ def test_divergence_and_curl_by_finite_differences(kind, tau, rng):
 def test_nfw_potential_gradient_is_deflection():
     x = torch.linspace(0.02, 3.0, 25, dtype=torch.float64)
     y = 0.5 * x
-    args = (torch.tensor(0.4, dtype=torch.float64), torch.tensor(0.2, dtype=torch.float64), 0.0, 0.0)
+    args = (
+        torch.tensor(0.4, dtype=torch.float64),
+        torch.tensor(0.2, dtype=torch.float64),
+        0.0,
+        0.0,
+    )
     h = 1e-6
     ax, ay = nfw.nfw_deflection(x, y, *args)
     dpx = (nfw.nfw_potential(x + h, y, *args) - nfw.nfw_potential(x - h, y, *args)) / (2 * h)
     dpy = (nfw.nfw_potential(x, y + h, *args) - nfw.nfw_potential(x, y - h, *args)) / (2 * h)
     torch.testing.assert_close(dpx, ax, rtol=1e-7, atol=1e-12)
     torch.testing.assert_close(dpy, ay, rtol=1e-7, atol=1e-12)
-    assert float(nfw.nfw_potential(torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64), *args)) == pytest.approx(0.0, abs=1e-20)
+    assert float(
+        nfw.nfw_potential(
+            torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64), *args
+        )
+    ) == pytest.approx(0.0, abs=1e-20)
 
 
 def test_nfw_normalisation_and_known_values():
@@ -210,10 +227,16 @@ def test_float32_matches_float64(kind):
         for xx in (x32, x64):
             one = torch.ones((), dtype=xx.dtype)
             if kind == "nfw":
-                out[xx.dtype] = (nfw.nfw_convergence(xx, 0 * xx, one, one, 0.0, 0.0), nfw.nfw_deflection(xx, 0 * xx, one, one, 0.0, 0.0)[0])
+                out[xx.dtype] = (
+                    nfw.nfw_convergence(xx, 0 * xx, one, one, 0.0, 0.0),
+                    nfw.nfw_deflection(xx, 0 * xx, one, one, 0.0, 0.0)[0],
+                )
             else:
                 t = one * tau
-                out[xx.dtype] = (tnfw.tnfw_convergence(xx, 0 * xx, one, one, t, 0.0, 0.0), tnfw.tnfw_deflection(xx, 0 * xx, one, one, t, 0.0, 0.0)[0])
+                out[xx.dtype] = (
+                    tnfw.tnfw_convergence(xx, 0 * xx, one, one, t, 0.0, 0.0),
+                    tnfw.tnfw_deflection(xx, 0 * xx, one, one, t, 0.0, 0.0)[0],
+                )
         k32, a32 = out[torch.float32]
         k64, a64 = out[torch.float64]
         worst_k = max(worst_k, float(torch.max(torch.abs(k32.double() / k64 - 1))))
@@ -239,7 +262,9 @@ def test_broadcasting_batched_population():
     assert ax.shape == ay.shape == k.shape == (B, N, P)
     # element (1, 2, 7) equals the scalar evaluation
     s = (1, 2, 7)
-    ax1, _ = tnfw.tnfw_deflection(x[1, 0, 7], y[1, 0, 7], r_s[1, 2, 0], a_rs[1, 2, 0], rt[1, 2, 0], cx[1, 2, 0], cy[1, 2, 0])
+    ax1, _ = tnfw.tnfw_deflection(
+        x[1, 0, 7], y[1, 0, 7], r_s[1, 2, 0], a_rs[1, 2, 0], rt[1, 2, 0], cx[1, 2, 0], cy[1, 2, 0]
+    )
     assert float(ax[s]) == pytest.approx(float(ax1), rel=1e-14)
 
 
@@ -269,7 +294,9 @@ def test_physical_wrapper_matches_conversion():
     r_s, a_rs = nfw.nfw_params_physical(m, c, 0.2, 0.6, like=x)
     assert r_s.dtype == torch.float32 and r_s.shape == (1, 2, 1)
     rs_np, ars_np = nfw_params_from_m200_c(m, c, 0.2, 0.6)
-    xx = torch.tensor(rs_np[0, :, 0], dtype=torch.float64).view(1, 2, 1) * torch.ones(1, 1, 4, dtype=torch.float64)
+    xx = torch.tensor(rs_np[0, :, 0], dtype=torch.float64).view(1, 2, 1) * torch.ones(
+        1, 1, 4, dtype=torch.float64
+    )
     ax, _ = nfw.nfw_deflection_physical(xx, 0 * xx, m, c, 0.0, 0.0, 0.2, 0.6)
     np.testing.assert_allclose(ax[0, :, 0].numpy(), ars_np[0, :, 0], rtol=1e-12)
 
@@ -281,8 +308,12 @@ def test_cuda_matches_cpu():
     a_rs = torch.tensor([1e-3, 1e-2], dtype=torch.float32).view(1, 2, 1)
     rt = 5 * r_s
     cpu = tnfw.tnfw_deflection(x, 0.3 * x, r_s, a_rs, rt, 0.01, 0.0)[0]
-    gpu = tnfw.tnfw_deflection(x.cuda(), 0.3 * x.cuda(), r_s.cuda(), a_rs.cuda(), rt.cuda(), 0.01, 0.0)[0]
+    gpu = tnfw.tnfw_deflection(
+        x.cuda(), 0.3 * x.cuda(), r_s.cuda(), a_rs.cuda(), rt.cuda(), 0.01, 0.0
+    )[0]
     assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-9)
     k = nfw.nfw_convergence(x.cuda(), 0.3 * x.cuda(), r_s.cuda(), a_rs.cuda(), 0.01, 0.0)
-    torch.testing.assert_close(k.cpu(), nfw.nfw_convergence(x, 0.3 * x, r_s, a_rs, 0.01, 0.0), rtol=1e-5, atol=1e-9)
+    torch.testing.assert_close(
+        k.cpu(), nfw.nfw_convergence(x, 0.3 * x, r_s, a_rs, 0.01, 0.0), rtol=1e-5, atol=1e-9
+    )

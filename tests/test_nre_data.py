@@ -64,7 +64,9 @@ def test_preprocess_hand_made_mask():
     expected[1:3, 1:3] = 1.0
     np.testing.assert_array_equal(out, expected)
     # no mask: whitening only
-    np.testing.assert_allclose(preprocess(img, 1.0, 0, 0, 1.0, 2.0, mask_factor=None), np.ones((5, 5)))
+    np.testing.assert_allclose(
+        preprocess(img, 1.0, 0, 0, 1.0, 2.0, mask_factor=None), np.ones((5, 5))
+    )
 
 
 def test_preprocess_matches_numpy_reference(rng):
@@ -76,7 +78,9 @@ def test_preprocess_matches_numpy_reference(rng):
     np.testing.assert_allclose(out, ref, atol=1e-6)
     assert 0 < (out == 0).mean() < 1  # the mask does something
     # torch in → torch out, (B, 1, H, W) with (B,) parameters, float64 kept
-    t = preprocess(torch.from_numpy(images.astype(np.float64))[:, None], torch.from_numpy(te), lx, ly, 3.0, 2.0)
+    t = preprocess(
+        torch.from_numpy(images.astype(np.float64))[:, None], torch.from_numpy(te), lx, ly, 3.0, 2.0
+    )
     assert isinstance(t, torch.Tensor) and t.dtype == torch.float64 and t.shape == (4, 1, 12, 10)
     np.testing.assert_allclose(t[:, 0].numpy(), ref, atol=1e-12)
     assert preprocess(np.ones((3, 3), dtype=np.int32), 1, 0, 0, 0, 1).dtype == np.float32
@@ -92,13 +96,20 @@ def test_preprocess_bad_input():
 def test_read_whitening(tmp_path):
     p = tmp_path / "w.json"
     p.write_text(json.dumps({"mean": 1.5, "std": 2.0}))
-    assert read_whitening(p) == (1.5, 2.0) == read_whitening({"mean": 1.5, "std": 2}) == read_whitening((1.5, 2.0))
+    assert (
+        read_whitening(p)
+        == (1.5, 2.0)
+        == read_whitening({"mean": 1.5, "std": 2})
+        == read_whitening((1.5, 2.0))
+    )
     p.write_text(json.dumps({"mean": 1.5}))
     with pytest.raises(ValueError, match="std"):
         read_whitening(p)
     with pytest.raises(ValueError, match="std > 0"):
         read_whitening((0.0, -1.0))
-    p.write_text(json.dumps({"format": "subslope-whitening", "mean": 2.0, "std": 4.0, "n_images": 10}))
+    p.write_text(
+        json.dumps({"format": "subslope-whitening", "mean": 2.0, "std": 4.0, "n_images": 10})
+    )
     assert read_whitening(p) == (2.0, 4.0)  # extra keys of subslope.nre.whitening files are ignored
 
 
@@ -139,9 +150,13 @@ def test_each_image_once_per_epoch_any_workers(shards, window):
     assert not np.array_equal(epoch1, serial)  # differs between epochs
     again = ShardBatches(paths, 8, None, shuffle=True, seed=7, block_size=5, window=window)
     again.set_epoch(1)
-    np.testing.assert_array_equal(_epoch_indices(again, 0), epoch1)  # reproducible per (seed, epoch)
+    np.testing.assert_array_equal(
+        _epoch_indices(again, 0), epoch1
+    )  # reproducible per (seed, epoch)
     again.set_epoch(1)
-    np.testing.assert_array_equal(_epoch_indices(again, 2, start=4), epoch1[4 * 8 :])  # resume mid-epoch
+    np.testing.assert_array_equal(
+        _epoch_indices(again, 2, start=4), epoch1[4 * 8 :]
+    )  # resume mid-epoch
     other = ShardBatches(paths, 8, None, shuffle=True, seed=8, block_size=5, window=window)
     assert not np.array_equal(_epoch_indices(other, 0), serial)
 
@@ -202,11 +217,23 @@ def test_reads_shards_written_by_subslope_shards(tmp_path, rng):
     shards = pytest.importorskip("subslope.io.shards")
     n = 7
     images = rng.normal(size=(n, 10, 10)).astype(np.float32)
-    params = {"theta_e": rng.uniform(0.9, 1.3, n), "lens_x": np.zeros(n), "lens_y": np.zeros(n),
-              "set_index": np.arange(n), "noise_seed": np.arange(n, dtype=np.uint64), "gamma_sub": rng.uniform(1.1, 2.9, n)}
-    path = shards.write_shard(tmp_path / "s.h5", images=images, params=params, psf=np.ones((3, 3)) / 9,
-                              subhalos={"counts": np.zeros(n, dtype=np.int64)}, los={"counts": np.zeros(n, dtype=np.int64)},
-                              attrs={"seed": 1})
+    params = {
+        "theta_e": rng.uniform(0.9, 1.3, n),
+        "lens_x": np.zeros(n),
+        "lens_y": np.zeros(n),
+        "set_index": np.arange(n),
+        "noise_seed": np.arange(n, dtype=np.uint64),
+        "gamma_sub": rng.uniform(1.1, 2.9, n),
+    }
+    path = shards.write_shard(
+        tmp_path / "s.h5",
+        images=images,
+        params=params,
+        psf=np.ones((3, 3)) / 9,
+        subhalos={"counts": np.zeros(n, dtype=np.int64)},
+        los={"counts": np.zeros(n, dtype=np.int64)},
+        attrs={"seed": 1},
+    )
     batch = ShardBatches([path], 4, (0.0, 2.0), shuffle=False)[1]
     ref = preprocess(images[4:], params["theta_e"][4:], 0.0, 0.0, 0.0, 2.0)
     np.testing.assert_allclose(batch["x"][:, 0].numpy(), ref, atol=1e-6)

@@ -16,7 +16,10 @@ from subslope.nre.models import RatioEstimator
 def test_loss_matches_bce_reference():
     g = torch.Generator().manual_seed(0)
     pos, neg = torch.randn(50, generator=g) * 3, torch.randn(50, generator=g) * 3
-    ref = 0.5 * (F.binary_cross_entropy_with_logits(pos, torch.ones(50)) + F.binary_cross_entropy_with_logits(neg, torch.zeros(50)))
+    ref = 0.5 * (
+        F.binary_cross_entropy_with_logits(pos, torch.ones(50))
+        + F.binary_cross_entropy_with_logits(neg, torch.zeros(50))
+    )
     assert torch.allclose(nre_loss(pos, neg), ref, atol=1e-6)
 
 
@@ -31,7 +34,9 @@ def test_loss_finite_for_huge_logits(big):
     # one confidently wrong pair of each class costs ~big/3 (mean over 3) per term
     assert loss.item() == pytest.approx(big / 3, rel=1e-3)
     # perfectly right logits give ~0
-    assert nre_loss(torch.full((4,), big), torch.full((4,), -big)).item() == pytest.approx(0.0, abs=1e-6)
+    assert nre_loss(torch.full((4,), big), torch.full((4,), -big)).item() == pytest.approx(
+        0.0, abs=1e-6
+    )
 
 
 @pytest.mark.parametrize("mode", ["roll", "derangement"])
@@ -56,7 +61,9 @@ def test_bnre_penalty():
     assert nre_loss(pos, neg, lmbda=100.0) == pytest.approx(math.log(2))
     pos, neg = torch.full((8,), 3.0), torch.full((8,), 3.0)  # unbalanced
     b = 2 * torch.sigmoid(torch.tensor(3.0)) - 1
-    assert nre_loss(pos, neg, lmbda=10.0) == pytest.approx(float(nre_loss(pos, neg) + 10 * b**2), rel=1e-6)
+    assert nre_loss(pos, neg, lmbda=10.0) == pytest.approx(
+        float(nre_loss(pos, neg) + 10 * b**2), rel=1e-6
+    )
 
 
 class _Counting(nn.Module):

@@ -11,7 +11,9 @@ from subslope.nre.models import PRESETS, ResNetTrunk, build_model, count_paramet
 @pytest.fixture(scope="module")
 def model():
     torch.manual_seed(0)
-    m = build_model({"depth": 10, "width": 0.0625, "head": [16, 16]}, gamma_mean=2.0, gamma_std=0.52)
+    m = build_model(
+        {"depth": 10, "width": 0.0625, "head": [16, 16]}, gamma_mean=2.0, gamma_std=0.52
+    )
     return m.eval()
 
 
@@ -99,9 +101,16 @@ def test_resnet50_builds_and_runs():
         assert m.log_ratio_grid(torch.randn(1, 100, 100), torch.tensor([1.5, 2.5])).shape == (1, 2)
 
 
-@pytest.mark.parametrize("arch,match", [({"depth": 20}, "depth"), ({"stem": "big"}, "stem"),
-                                        ({"width": 0}, "width"), ({"colour": 3}, "unknown"),
-                                        ({"preset": "vit"}, "preset")])
+@pytest.mark.parametrize(
+    "arch,match",
+    [
+        ({"depth": 20}, "depth"),
+        ({"stem": "big"}, "stem"),
+        ({"width": 0}, "width"),
+        ({"colour": 3}, "unknown"),
+        ({"preset": "vit"}, "preset"),
+    ],
+)
 def test_bad_arch(arch, match):
     with pytest.raises(ValueError, match=match):
         build_model(arch)

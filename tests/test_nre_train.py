@@ -7,9 +7,9 @@ import math
 
 import pytest
 import torch
+from test_nre_data import write_shard
 
 from subslope.nre.train import load_estimator, resolve_config, train
-from test_nre_data import write_shard
 
 TINY = {"depth": 10, "width": 0.0625, "head": [16]}
 
@@ -17,15 +17,26 @@ TINY = {"depth": 10, "width": 0.0625, "head": [16]}
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory):
     d = tmp_path_factory.mktemp("nre_shards")
-    train_paths = [write_shard(d / "t0.h5", 45, 0, hw=32, signal=3.0),
-                   write_shard(d / "t1.h5", 38, 1, hw=32, signal=3.0, offset=45)]
+    train_paths = [
+        write_shard(d / "t0.h5", 45, 0, hw=32, signal=3.0),
+        write_shard(d / "t1.h5", 38, 1, hw=32, signal=3.0, offset=45),
+    ]
     val_paths = [write_shard(d / "v0.h5", 24, 2, hw=32, signal=3.0)]
     return train_paths, val_paths
 
 
 def _config(**kw):
-    cfg = {"arch": TINY, "batch_size": 16, "max_epochs": 3, "deterministic": True, "progress": False,
-           "negatives": "derangement", "checkpoint_every": 2, "block_size": 8, "seed": 3}
+    cfg = {
+        "arch": TINY,
+        "batch_size": 16,
+        "max_epochs": 3,
+        "deterministic": True,
+        "progress": False,
+        "negatives": "derangement",
+        "checkpoint_every": 2,
+        "block_size": 8,
+        "seed": 3,
+    }
     cfg.update(kw)
     return cfg
 
@@ -39,7 +50,9 @@ def test_resume_reproduces_uninterrupted_run(shards, tmp_path):
     assert full["finished"] and full["epochs"] == 3
 
     out, ck = tmp_path / "b_out", tmp_path / "b_ck"
-    part = train(_config(max_steps=3), tr, va, WHITENING, out, ck, device="cpu")  # mid epoch 0 (5 batches/epoch)
+    part = train(
+        _config(max_steps=3), tr, va, WHITENING, out, ck, device="cpu"
+    )  # mid epoch 0 (5 batches/epoch)
     assert not part["finished"] and part["step"] == 3 and part["model"] is None
     assert not (out / "model.pt").exists() and (ck / "last.pt").exists()
     part = train(_config(max_steps=7), tr, va, WHITENING, out, ck, device="cpu")  # mid epoch 1
@@ -52,7 +65,9 @@ def test_resume_reproduces_uninterrupted_run(shards, tmp_path):
     for (name, pa), pb in zip(a.state_dict().items(), b.state_dict().values()):
         assert torch.equal(pa, pb), f"{name} differs after resume"
     assert [r["val_loss"] for r in meta_a["history"]] == [r["val_loss"] for r in meta_b["history"]]
-    assert [r["train_loss"] for r in meta_a["history"]] == pytest.approx([r["train_loss"] for r in meta_b["history"]], abs=1e-12)
+    assert [r["train_loss"] for r in meta_a["history"]] == pytest.approx(
+        [r["train_loss"] for r in meta_b["history"]], abs=1e-12
+    )
 
     # a finished run called again just rewrites the artifact
     again = train(_config(), tr, va, WHITENING, out, ck, device="cpu")
@@ -63,8 +78,21 @@ def test_resume_reproduces_uninterrupted_run(shards, tmp_path):
 
 def test_artifact_learning_and_log(shards, tmp_path):
     tr, va = shards
-    res = train(_config(max_epochs=8, batch_size=8, negatives="roll", deterministic=False, arch={**TINY, "head": [32, 32]}, lr=3e-3),
-                tr, va, {"mean": 11.0, "std": 3.0}, tmp_path / "out", tmp_path / "ck")
+    res = train(
+        _config(
+            max_epochs=8,
+            batch_size=8,
+            negatives="roll",
+            deterministic=False,
+            arch={**TINY, "head": [32, 32]},
+            lr=3e-3,
+        ),
+        tr,
+        va,
+        {"mean": 11.0, "std": 3.0},
+        tmp_path / "out",
+        tmp_path / "ck",
+    )
     model, meta = load_estimator(res["model"])
     assert not model.training
     assert meta["whitening"] == {"mean": 11.0, "std": 3.0}
@@ -85,8 +113,21 @@ def test_artifact_learning_and_log(shards, tmp_path):
 def test_early_stopping_and_lr_schedule(shards, tmp_path):
     tr, va = shards
     # min_delta so large that no epoch counts as an improvement after the first
-    res = train(_config(max_epochs=10, min_delta=10.0, early_stop_patience=2, lr_patience=0, lr_cooldown=0,
-                        deterministic=False), tr, va, WHITENING, tmp_path / "o", tmp_path / "c")
+    res = train(
+        _config(
+            max_epochs=10,
+            min_delta=10.0,
+            early_stop_patience=2,
+            lr_patience=0,
+            lr_cooldown=0,
+            deterministic=False,
+        ),
+        tr,
+        va,
+        WHITENING,
+        tmp_path / "o",
+        tmp_path / "c",
+    )
     assert res["stop_reason"] == "early_stop" and res["epochs"] == 3
     _, meta = load_estimator(res["model"])
     lrs = [r["lr"] for r in meta["history"]]
@@ -106,7 +147,9 @@ def test_bad_config():
 @pytest.mark.gpu
 def test_cuda_mixed_precision(shards, tmp_path):
     tr, va = shards
-    res = train(_config(max_epochs=2, amp="auto"), tr, va, WHITENING, tmp_path / "o", tmp_path / "c")  # device picked: cuda
+    res = train(
+        _config(max_epochs=2, amp="auto"), tr, va, WHITENING, tmp_path / "o", tmp_path / "c"
+    )  # device picked: cuda
     assert res["finished"]
     model, meta = load_estimator(res["model"])  # CPU tensors whatever the training device
     assert all(p.device.type == "cpu" for p in model.parameters())

@@ -7,7 +7,14 @@ import shutil
 import numpy as np
 import pytest
 
-from subslope.io.observations import IMAGE_SHAPE, Observation, ObservationError, load_catalog, load_hst, load_image
+from subslope.io.observations import (
+    IMAGE_SHAPE,
+    Observation,
+    ObservationError,
+    load_catalog,
+    load_hst,
+    load_image,
+)
 
 HEADER = "file,system,z_lens,z_source,theta_E_arcsec\n"
 
@@ -18,7 +25,9 @@ def test_load_real_hst(data_dir):
     assert all(isinstance(o, Observation) for o in obs)
     names = [o.name for o in obs]
     assert len(set(names)) == 13
-    assert all(n.startswith("SDSSJ") and len(n) == 14 for n in names)  # SDSS names, not plate-MJD-fibre
+    assert all(
+        n.startswith("SDSSJ") and len(n) == 14 for n in names
+    )  # SDSS names, not plate-MJD-fibre
     assert "SDSSJ0946+1006" in names
     # Ordered as the catalogue.
     assert names == [row["system"] for row in load_catalog(data_dir / "hst" / "catalog.csv")]
@@ -99,7 +108,10 @@ def _folder(tmp_path, data_dir, catalog_text):
 @pytest.mark.parametrize(
     "rows, match",
     [
-        ("SDSSJ0000+0000_npix100.npy,SDSSJ0000+0000,0.2,0.6,1.0\n", r"SDSSJ0000\+0000 lists file .* not found"),
+        (
+            "SDSSJ0000+0000_npix100.npy,SDSSJ0000+0000,0.2,0.6,1.0\n",
+            r"SDSSJ0000\+0000 lists file .* not found",
+        ),
         (
             "SDSSJ0946+1006_npix100.npy,SDSSJ0946+1006,0.222,0.609,1.38\n"
             "copy_npix100.npy,SDSSJ0946+1006,0.222,0.609,1.38\n",
@@ -109,8 +121,14 @@ def _folder(tmp_path, data_dir, catalog_text):
             "SDSSJ0946+1006_npix100.npy,A,0.222,0.609,1.38\nSDSSJ0946+1006_npix100.npy,B,0.222,0.609,1.38\n",
             "line 3: duplicate file",
         ),
-        ("SDSSJ0946+1006_npix100.npy,X,abc,0.609,1.38\n", r"line 2: column 'z_lens' = 'abc' is not a number"),
-        ("SDSSJ0946+1006_npix100.npy,X,0.7,0.6,1.38\n", r"line 2 \(X\): need 0 < z_lens < z_source"),
+        (
+            "SDSSJ0946+1006_npix100.npy,X,abc,0.609,1.38\n",
+            r"line 2: column 'z_lens' = 'abc' is not a number",
+        ),
+        (
+            "SDSSJ0946+1006_npix100.npy,X,0.7,0.6,1.38\n",
+            r"line 2 \(X\): need 0 < z_lens < z_source",
+        ),
         ("SDSSJ0946+1006_npix100.npy,X,0.2,0.6,-1\n", "theta_E_arcsec must be > 0"),
         (",X,0.2,0.6,1\n", "line 2: empty 'file'"),
         ("", "no rows"),
@@ -125,7 +143,9 @@ def test_bad_catalogue(tmp_path, data_dir, rows, match):
 
 def test_catalogue_missing_column(tmp_path):
     (tmp_path / "catalog.csv").write_text("file,system,z_lens\nA.npy,A,0.2\n")
-    with pytest.raises(ObservationError, match=r"missing column\(s\) \['z_source', 'theta_E_arcsec'\]"):
+    with pytest.raises(
+        ObservationError, match=r"missing column\(s\) \['z_source', 'theta_E_arcsec'\]"
+    ):
         load_catalog(tmp_path / "catalog.csv")
     with pytest.raises(ObservationError, match="catalogue not found"):
         load_catalog(tmp_path / "nope.csv")

@@ -19,12 +19,17 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.physics.pairs import nfw as nfw_pairs
 from subslope.physics.pairs import epl as pair_epl
+from subslope.physics.pairs import nfw as nfw_pairs
 from subslope.physics.pairs import sums as pk
 from subslope.physics.profiles.epl import epl_deflection_and_convergence
 from subslope.physics.profiles.nfw import nfw_convergence, nfw_deflection
-from subslope.physics.profiles.tnfw import kappa_asymptotic, series_weights, tnfw_convergence, tnfw_deflection
+from subslope.physics.profiles.tnfw import (
+    kappa_asymptotic,
+    series_weights,
+    tnfw_convergence,
+    tnfw_deflection,
+)
 
 TAUS = (1e-3, 0.02, 0.5, 1.0, math.e, 10.0, 1e3)
 R_S, ALPHA_RS, CX, CY = 0.37, 0.011, 0.0, 0.0  # centre at 0: float32 resolves x down to 1e-8
@@ -37,9 +42,13 @@ BOUNDS = {torch.float32: (1.5e-6, 1.5e-6), torch.float64: (1e-13, 3e-12)}
 
 def _radii() -> torch.Tensor:
     """x = R/r_s: log grid, a dense band around x = 1, the centre and the switches."""
-    return torch.cat([torch.logspace(-8, 4, 1201, dtype=torch.float64),
-                      1.0 + torch.linspace(-0.3, 0.3, 241, dtype=torch.float64),
-                      torch.tensor([0.0, 0.5, 0.55, 1.0, 2.0, 1e-12], dtype=torch.float64)])
+    return torch.cat(
+        [
+            torch.logspace(-8, 4, 1201, dtype=torch.float64),
+            1.0 + torch.linspace(-0.3, 0.3, 241, dtype=torch.float64),
+            torch.tensor([0.0, 0.5, 0.55, 1.0, 2.0, 1e-12], dtype=torch.float64),
+        ]
+    )
 
 
 def _params(profile: str, tau: float | None, dtype, n_pad: int = 0) -> dict[str, torch.Tensor]:
@@ -116,7 +125,7 @@ def test_tnfw_float64_kappa_against_series():
 def test_layouts_and_padding(profile, dtype):
     """Both broadcast layouts give identical values; padded members give exact zeros."""
     px, py, _, _ = _points(dtype)
-    for tau in (TAUS if profile == "tnfw" else (None,)):
+    for tau in TAUS if profile == "tnfw" else (None,):
         table = pk.member_table(profile, _params(profile, tau, dtype, n_pad=2), 0)
         assert bool(torch.isfinite(table).all())
         assert bool((table[0, pk.AMPLITUDE_ROW[profile], 1:] == 0).all())
@@ -132,14 +141,20 @@ def test_compiled_direct_sums_match_eager(profile):
     gen = torch.Generator().manual_seed(1)
     n, q, d = 37, 23, torch.float32
     u = lambda *s: torch.rand(*s, generator=gen, dtype=d)  # noqa: E731
-    params = {"x": 2 * u(1, n) - 1, "y": 2 * u(1, n) - 1, "r_s": 10 ** (2 * u(1, n) - 2),
-              "alpha_rs": 1e-3 * u(1, n) * (u(1, n) > 0.2)}
+    params = {
+        "x": 2 * u(1, n) - 1,
+        "y": 2 * u(1, n) - 1,
+        "r_s": 10 ** (2 * u(1, n) - 2),
+        "alpha_rs": 1e-3 * u(1, n) * (u(1, n) > 0.2),
+    }
     params["r_t"] = params["r_s"] * 10 ** (4 * u(1, n) - 2)
     table = pk.member_table(profile, params, 0)
     x, y = 2 * u(1, q) - 1, 2 * u(1, q) - 1
     x[0, :3], y[0, :3] = table[0, 0, :3], table[0, 1, :3]  # points exactly at centres
     compiled = torch.compile(pk.direct_sums, dynamic=True, fullgraph=True)
-    for got, want in zip(compiled(x, y, table, profile), pk.direct_sums(x, y, table, profile), strict=True):
+    for got, want in zip(
+        compiled(x, y, table, profile), pk.direct_sums(x, y, table, profile), strict=True
+    ):
         assert bool(torch.isfinite(got).all())
         torch.testing.assert_close(got, want, rtol=2e-5, atol=1e-7)
 
@@ -159,8 +174,12 @@ def test_polynomial_fits(name):
 
 def test_log_matches_torch():
     for dtype, bound in ((torch.float32, 2e-7), (torch.float64, 4e-16)):
-        z = torch.cat([torch.logspace(-24, 30, 20001, dtype=torch.float64),
-                       torch.linspace(0.5, 2.0, 2001, dtype=torch.float64)]).to(dtype)
+        z = torch.cat(
+            [
+                torch.logspace(-24, 30, 20001, dtype=torch.float64),
+                torch.linspace(0.5, 2.0, 2001, dtype=torch.float64),
+            ]
+        ).to(dtype)
         got = nfw_pairs.fast_log(z, torch.ones((), dtype=dtype)).double()
         want = torch.log(z.double())
         assert float(((got - want).abs() / want.abs().clamp(min=1.0)).max()) < bound
@@ -173,16 +192,31 @@ def test_epl_pair_against_reference(n_terms):
     u = lambda *s: torch.rand(*s, generator=gen, dtype=d)  # noqa: E731
     e = 0.28 * u(1, n).sqrt()
     phi = 2 * math.pi * u(1, n)
-    params = {"amp": 0.5 * u(1, n) + 0.01, "gamma": 1.01 + 1.98 * u(1, n), "e1": e * torch.cos(phi),
-              "e2": e * torch.sin(phi), "x": 2 * u(1, n) - 1, "y": 2 * u(1, n) - 1}
+    params = {
+        "amp": 0.5 * u(1, n) + 0.01,
+        "gamma": 1.01 + 1.98 * u(1, n),
+        "e1": e * torch.cos(phi),
+        "e2": e * torch.sin(phi),
+        "x": 2 * u(1, n) - 1,
+        "y": 2 * u(1, n) - 1,
+    }
     params["gamma"][0, :2] = torch.tensor([1.01, 2.99], dtype=d)
     table = pk.member_table("epl", params, n_terms)
     x, y = 3 * u(1, q) - 1.5, 3 * u(1, q) - 1.5
     rows = [table[:, k, None, :] for k in range(table.shape[1])]
     got = pair_epl.epl_pair(x[:, :, None], y[:, :, None], rows)
     p = {k: v[:, None, :] for k, v in params.items()}
-    want = epl_deflection_and_convergence(x[:, :, None], y[:, :, None], p["amp"], p["gamma"], p["e1"], p["e2"],
-                                          p["x"], p["y"], n_terms=n_terms)
+    want = epl_deflection_and_convergence(
+        x[:, :, None],
+        y[:, :, None],
+        p["amp"],
+        p["gamma"],
+        p["e1"],
+        p["e2"],
+        p["x"],
+        p["y"],
+        n_terms=n_terms,
+    )
     for g, w in zip(got, want, strict=True):
         torch.testing.assert_close(g, w, rtol=1e-12, atol=0)
 
@@ -203,15 +237,24 @@ def test_far_plus_near_equals_direct(profile):
     gen = torch.Generator().manual_seed(5)
     n, q, d = 9, 40, torch.float64
     u = lambda *s: torch.rand(*s, generator=gen, dtype=d)  # noqa: E731
-    params = {"x": 0.4 * u(1, n) - 0.2, "y": 0.4 * u(1, n) - 0.2, "r_s": 0.05 + 0.2 * u(1, n),
-              "alpha_rs": 1e-2 * u(1, n), "amp": 0.2 * u(1, n), "gamma": 1.5 + u(1, n),
-              "e1": 0.2 * u(1, n) - 0.1, "e2": 0.2 * u(1, n) - 0.1}
+    params = {
+        "x": 0.4 * u(1, n) - 0.2,
+        "y": 0.4 * u(1, n) - 0.2,
+        "r_s": 0.05 + 0.2 * u(1, n),
+        "alpha_rs": 1e-2 * u(1, n),
+        "amp": 0.2 * u(1, n),
+        "gamma": 1.5 + u(1, n),
+        "e1": 0.2 * u(1, n) - 0.1,
+        "e2": 0.2 * u(1, n) - 0.1,
+    }
     params["r_t"] = params["r_s"] * (0.1 + 5 * u(1, n))
     table = pk.member_table(profile, params, 14)
     x, y = 0.5 * u(1, q) - 0.25, 0.5 * u(1, q) - 0.25  # within r_c = 0.6 of every member
     inv_rc2 = torch.full((1, n), 1 / 0.6**2, dtype=d)
     far = pk.far_sums(x, y, table, profile, inv_rc2)
-    near = pk.near_tile_sums(x, y, table[0][:, None, :], profile, inv_rc2, torch.ones(1, n, dtype=d))
+    near = pk.near_tile_sums(
+        x, y, table[0][:, None, :], profile, inv_rc2, torch.ones(1, n, dtype=d)
+    )
     direct = pk.direct_sums(x, y, table, profile)
     for f_, n_, d_ in zip(far, near, direct, strict=True):
         torch.testing.assert_close(f_ + n_, d_, rtol=1e-12, atol=1e-15)

@@ -21,6 +21,7 @@ SNAKEMAKE = Path(sys.executable).with_name("snakemake")
 
 def _layered() -> dict:
     """config.yaml with paper.yaml on top, merged key by key as Snakemake does."""
+
     def merge(base, over):
         for key, value in over.items():
             if isinstance(value, dict) and isinstance(base.get(key), dict):
@@ -42,13 +43,22 @@ def test_paper_config_has_the_paper_numbers():
     for scene in ("test_epl", "nfw", "tnfw"):
         assert n_images[scene] == 100 * 13
     assert 1.0 in sim["multipliers"]
-    assert sim["sources"]["cuts"] == {"mag_max": 20.0, "min_stamp_side": 64, "min_flux_radius": 10.0,
-                                      "zphot_max": 1.0, "exclude": []}
+    assert sim["sources"]["cuts"] == {
+        "mag_max": 20.0,
+        "min_stamp_side": 64,
+        "min_flux_radius": 10.0,
+        "zphot_max": 1.0,
+        "exclude": [],
+    }
     assert (sim["sources"]["split"]["train"], sim["sources"]["split"]["test"]) == (0.96, 0.01)
     assert sim["sources"]["mag_renormalize"] is None
     assert cfg["training"]["arch"]["preset"] == "resnet50" and cfg["training"]["batch_size"] == 1000
     assert cfg["training"]["lr"] == 1e-3 and cfg["training"]["mask_factor"] == 1.5
-    assert cfg["scenes"]["train"]["subhalos"]["count"] == {"dist": "uniform_int", "low": 0, "high": 3000}
+    assert cfg["scenes"]["train"]["subhalos"]["count"] == {
+        "dist": "uniform_int",
+        "low": 0,
+        "high": 3000,
+    }
     assert cfg["scenes"]["validation"]["subhalos"]["count"]["high"] == 1800
 
 
@@ -60,11 +70,18 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     for name in ("Snakefile",):
         shutil.copy(REPO / name, tmp_path)
     for folder in ("workflow", "config", "profiles"):
-        shutil.copytree(REPO / folder, tmp_path / folder, ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(
+            REPO / folder, tmp_path / folder, ignore=shutil.ignore_patterns("__pycache__")
+        )
     env = dict(os.environ, SUBSLOPE_DATA_MIRROR=str(data_dir), OMP_NUM_THREADS="1")
-    proc = subprocess.run([str(SNAKEMAKE), "-n", "--profile", "profiles/slurm", "--configfile",
-                           "config/paper.yaml"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          timeout=600)
+    proc = subprocess.run(
+        [str(SNAKEMAKE), "-n", "--profile", "profiles/slurm", "--configfile", "config/paper.yaml"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     lines = proc.stdout.split("Job stats:")[-1].splitlines()[3:]
     stats = {}
@@ -79,5 +96,11 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     assert stats["simulate_cdm_shard"] == stats["evaluate_cdm_profiles"] == 2 * n_mult * 10
     assert stats["evaluate_profiles"] == 1 + 10
     assert stats["calibrate_threshold"] == 6
-    for rule in ("train_estimator", "compute_whitening", "measure_cdm_grid", "analyze_hst", "write_summary"):
+    for rule in (
+        "train_estimator",
+        "compute_whitening",
+        "measure_cdm_grid",
+        "analyze_hst",
+        "write_summary",
+    ):
         assert stats[rule] == 1, rule

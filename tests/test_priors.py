@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from subslope.simulation.priors import DISTRIBUTIONS, Fixed, Normal, PowerLaw, Prior, PriorError, Uniform, UniformInt
+from subslope.simulation.priors import (
+    DISTRIBUTIONS,
+    Fixed,
+    Normal,
+    PowerLaw,
+    Prior,
+    PriorError,
+    Uniform,
+    UniformInt,
+)
 
 N = 20_000
 
@@ -109,7 +118,10 @@ def test_same_seed_same_draws():
         ({"dist": "uniform", "low": 0.9}, "missing high"),
         ({"dist": "uniform", "low": 0.9, "high": 1.3, "mean": 1}, "unknown key(s) mean"),
         ({"dist": "normal", "mean": 1.0, "std": 0.0}, "scenes.train.main_lens.theta_e.std"),
-        ({"dist": "normal", "mean": 0.0, "std": 0.01, "low": 5.0, "high": 6.0}, "no probability mass"),
+        (
+            {"dist": "normal", "mean": 0.0, "std": 0.01, "low": 5.0, "high": 6.0},
+            "no probability mass",
+        ),
         ({"dist": "uniform", "low": "a", "high": 1.0}, "scenes.train.main_lens.theta_e.low"),
         ({"dist": "uniform", "low": float("nan"), "high": 1.0}, "finite"),
         ({"dist": "uniform_int", "low": 0.5, "high": 3}, "integer"),

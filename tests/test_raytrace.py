@@ -9,8 +9,14 @@ import pytest
 import torch
 from astropy.cosmology import FlatLambdaCDM, LambdaCDM, Planck18
 
+from subslope.physics.raytrace import (
+    Plane,
+    comoving_distance,
+    multi_plane_ray_shoot,
+    plane_geometry,
+    ray_shoot,
+)
 from subslope.ragged import pack_ragged
-from subslope.physics.raytrace import Plane, comoving_distance, multi_plane_ray_shoot, plane_geometry, ray_shoot
 
 
 # --- small analytic deflectors (test-local) ---------------------------------------
@@ -29,13 +35,17 @@ def point_mass(x, y, theta_e, cx=0.0, cy=0.0):
 def point_masses(x, y, *, theta_e, cx, cy):
     """Summed deflection of a padded population of point masses, parameters (B, N);
     padded slots have theta_e = 0 and so deflect nothing."""
-    ax, ay = point_mass(x[:, None, :], y[:, None, :], theta_e[..., None], cx[..., None], cy[..., None])
+    ax, ay = point_mass(
+        x[:, None, :], y[:, None, :], theta_e[..., None], cx[..., None], cy[..., None]
+    )
     return ax.sum(dim=1), ay.sum(dim=1)
 
 
 def packed(values, counts, dtype=torch.float64):
     """Flat per-member arrays -> padded (B, N) tensors (zeros in the padding)."""
-    return {k: torch.as_tensor(pack_ragged(v, counts=counts)[0], dtype=dtype) for k, v in values.items()}
+    return {
+        k: torch.as_tensor(pack_ragged(v, counts=counts)[0], dtype=dtype) for k, v in values.items()
+    }
 
 
 def sheet(x, y, kappa):
@@ -64,9 +74,11 @@ def test_single_plane(dtype):
 
 def _lens_deflectors(dtype, b=1):
     te = torch.linspace(0.9, 1.3, b, dtype=dtype)[:, None]
-    return [functools.partial(sis, theta_e=te, cx=0.03, cy=-0.02),
-            functools.partial(point_mass, theta_e=0.1 * te, cx=0.5, cy=0.4),
-            functools.partial(sheet, kappa=torch.tensor(-0.02, dtype=dtype))]
+    return [
+        functools.partial(sis, theta_e=te, cx=0.03, cy=-0.02),
+        functools.partial(point_mass, theta_e=0.1 * te, cx=0.5, cy=0.4),
+        functools.partial(sheet, kappa=torch.tensor(-0.02, dtype=dtype)),
+    ]
 
 
 def test_one_plane_equals_single_plane_exactly(dtype):
@@ -85,7 +97,9 @@ def test_planes_at_same_redshift_equal_single_plane():
     x, y = grid()
     d = _lens_deflectors(torch.float64)
     ref = ray_shoot(x, y, d)
-    out = multi_plane_ray_shoot(x, y, [Plane(0.3, d[:1]), Plane(0.3, d[1:2]), Plane(0.3, d[2:])], 0.8)
+    out = multi_plane_ray_shoot(
+        x, y, [Plane(0.3, d[:1]), Plane(0.3, d[1:2]), Plane(0.3, d[2:])], 0.8
+    )
     assert torch.equal(out[0], ref[0]) and torch.equal(out[1], ref[1])
 
 
@@ -93,7 +107,10 @@ def test_two_sheets_analytic_composition():
     """Each sheet is a linear map; compose the multi-plane equation by hand."""
     z1, z2, zs, k1, k2 = 0.3, 0.5, 1.2, 0.15, -0.08
     x, y = grid()
-    planes = [Plane(z2, [functools.partial(sheet, kappa=k2)]), Plane(z1, [functools.partial(sheet, kappa=k1)])]
+    planes = [
+        Plane(z2, [functools.partial(sheet, kappa=k2)]),
+        Plane(z1, [functools.partial(sheet, kappa=k1)]),
+    ]
     bx, by = multi_plane_ray_shoot(x, y, planes, zs)  # given out of order: sorted internally
     # reduced -> physical: alpha_hat_1 = k1 theta D_s / D_1s; theta_2 = theta - D_12/D_2 alpha_hat_1
     b12 = dA(z1, z2) * dA(0, zs) / (dA(0, z2) * dA(z1, zs))
@@ -119,23 +136,35 @@ def test_per_system_redshifts_and_front_behind_copies():
     zs = np.array([0.55, 0.62, 0.7])
     te = torch.tensor([[1.0], [1.2], [0.95]], dtype=torch.float64)
     lens = [functools.partial(sis, theta_e=te, cx=0.02)]
-    slices = {z: [functools.partial(point_mass, theta_e=0.05 + 0.1 * z, cx=0.3 - z, cy=z)]
-              for z in (0.105, 0.205, 0.605, 0.655)}
-    planes = [Plane(0.105, slices[0.105]),
-              Plane(0.205, slices[0.205], active=0.205 < zl),
-              Plane(zl, lens),
-              Plane(0.205, slices[0.205], active=0.205 >= zl),
-              Plane(0.605, slices[0.605]), Plane(0.655, slices[0.655])]
+    slices = {
+        z: [functools.partial(point_mass, theta_e=0.05 + 0.1 * z, cx=0.3 - z, cy=z)]
+        for z in (0.105, 0.205, 0.605, 0.655)
+    }
+    planes = [
+        Plane(0.105, slices[0.105]),
+        Plane(0.205, slices[0.205], active=0.205 < zl),
+        Plane(zl, lens),
+        Plane(0.205, slices[0.205], active=0.205 >= zl),
+        Plane(0.605, slices[0.605]),
+        Plane(0.655, slices[0.655]),
+    ]
     bx, by = multi_plane_ray_shoot(x, y, planes, zs, beyond_source="skip")
     for i in range(b):
-        def sub(d):
-            return functools.partial(d.func, **{k: (v[i:i + 1] if torch.is_tensor(v) and v.dim() == 2 else v)
-                                              for k, v in d.keywords.items()})
+
+        def sub(d, i=i):
+            return functools.partial(
+                d.func,
+                **{
+                    k: (v[i : i + 1] if torch.is_tensor(v) and v.dim() == 2 else v)
+                    for k, v in d.keywords.items()
+                },
+            )
+
         pl = [Plane(z, [sub(d) for d in ds]) for z, ds in slices.items() if z < zs[i]]
         pl.append(Plane(float(zl[i]), [sub(lens[0])]))
-        rx, ry = multi_plane_ray_shoot(x[i:i + 1], y[i:i + 1], pl, float(zs[i]))
-        torch.testing.assert_close(bx[i:i + 1], rx, rtol=1e-13, atol=1e-13)
-        torch.testing.assert_close(by[i:i + 1], ry, rtol=1e-13, atol=1e-13)
+        rx, ry = multi_plane_ray_shoot(x[i : i + 1], y[i : i + 1], pl, float(zs[i]))
+        torch.testing.assert_close(bx[i : i + 1], rx, rtol=1e-13, atol=1e-13)
+        torch.testing.assert_close(by[i : i + 1], ry, rtol=1e-13, atol=1e-13)
     with pytest.raises(ValueError, match="not in front of the source"):
         multi_plane_ray_shoot(x, y, planes, zs)
 
@@ -143,11 +172,19 @@ def test_per_system_redshifts_and_front_behind_copies():
 def test_population_plane_in_multi_plane(rng):
     counts = np.array([4, 7])
     m = counts.sum()
-    params = packed({"theta_e": rng.uniform(0.01, 0.05, m), "cx": rng.uniform(-2, 2, m),
-                     "cy": rng.uniform(-2, 2, m)}, counts)
+    params = packed(
+        {
+            "theta_e": rng.uniform(0.01, 0.05, m),
+            "cx": rng.uniform(-2, 2, m),
+            "cy": rng.uniform(-2, 2, m),
+        },
+        counts,
+    )
     x, y = grid(n=8, batch=2)
     pop = functools.partial(point_masses, **params)
-    out = multi_plane_ray_shoot(x, y, [Plane(0.1, [pop]), Plane(0.2, [functools.partial(sis, theta_e=1.0)])], 0.6)
+    out = multi_plane_ray_shoot(
+        x, y, [Plane(0.1, [pop]), Plane(0.2, [functools.partial(sis, theta_e=1.0)])], 0.6
+    )
     assert torch.isfinite(out[0]).all() and out[0].shape == (2, 64)
 
 
@@ -161,7 +198,9 @@ def test_errors_name_argument():
     with pytest.raises(ValueError, match="cosmo must be flat"):
         multi_plane_ray_shoot(x, y, [Plane(0.2, d)], 0.6, cosmo=LambdaCDM(70, 0.3, 0.6))
     with pytest.raises(ValueError, match="in front of the previous active plane"):
-        multi_plane_ray_shoot(x, y, [Plane(np.array([0.3, 0.3]), d), Plane(np.array([0.2, 0.4]), d)], 0.6)
+        multi_plane_ray_shoot(
+            x, y, [Plane(np.array([0.3, 0.3]), d), Plane(np.array([0.2, 0.4]), d)], 0.6
+        )
     with pytest.raises(ValueError, match="beyond_source"):
         multi_plane_ray_shoot(x, y, [Plane(0.2, d)], 0.6, beyond_source="ignore")
     with pytest.raises(ValueError, match=r"deflectors\[0\]"):
@@ -178,7 +217,9 @@ def test_distances_cached_and_cosmo_argument():
     assert comoving_distance(0.6, c2) != chi[1]
     g = plane_geometry([0.2, 0.2, 0.4], 0.6)
     assert g.c_prev[0, 0] == 0 and g.c_dir[0, 0] == 1 and g.c_prev[1, 0] == 1 and g.c_dir[1, 0] == 0
-    np.testing.assert_allclose(g.to_physical[:, 0], [dA(0, 0.6) / dA(z, 0.6) for z in (0.2, 0.2, 0.4)], rtol=1e-10)
+    np.testing.assert_allclose(
+        g.to_physical[:, 0], [dA(0, 0.6) / dA(z, 0.6) for z in (0.2, 0.2, 0.4)], rtol=1e-10
+    )
 
 
 def _many_planes(dtype, rng_np, n_planes=30, zs=1.0):
@@ -186,9 +227,19 @@ def _many_planes(dtype, rng_np, n_planes=30, zs=1.0):
     planes = []
     for z in zs_list:
         c = rng_np.uniform(-2, 2, 2)
-        planes.append(Plane(float(z), [functools.partial(sis, theta_e=torch.tensor(0.02, dtype=dtype),
-                                                         cx=float(c[0]), cy=float(c[1]))]))
-    planes.append(Plane(0.3, [functools.partial(sis, theta_e=torch.tensor(1.2, dtype=dtype), cx=0.01)]))
+        planes.append(
+            Plane(
+                float(z),
+                [
+                    functools.partial(
+                        sis, theta_e=torch.tensor(0.02, dtype=dtype), cx=float(c[0]), cy=float(c[1])
+                    )
+                ],
+            )
+        )
+    planes.append(
+        Plane(0.3, [functools.partial(sis, theta_e=torch.tensor(1.2, dtype=dtype), cx=0.01)])
+    )
     return planes
 
 
@@ -199,7 +250,9 @@ def test_float32_vs_float64(rng):
     b64 = multi_plane_ray_shoot(x64, y64, p64, 1.0)
     b32 = multi_plane_ray_shoot(x64.float(), y64.float(), p32, 1.0)
     assert b32[0].dtype == torch.float32
-    err = max((b32[0].double() - b64[0]).abs().max().item(), (b32[1].double() - b64[1]).abs().max().item())
+    err = max(
+        (b32[0].double() - b64[0]).abs().max().item(), (b32[1].double() - b64[1]).abs().max().item()
+    )
     assert err < 2e-6  # arcsec; measured ~4e-7 (31 planes, 50x50 grid, 4" field)
 
 
@@ -208,12 +261,23 @@ def test_against_lenstronomy_multiplane():
     from lenstronomy.LensModel.lens_model import LensModel
 
     x, y = grid(n=15)
-    kw = [{"theta_E": 0.3, "center_x": 0.2, "center_y": -0.1}, {"theta_E": 1.1, "center_x": 0.03, "center_y": 0.02}]
-    planes = [Plane(0.1, [functools.partial(point_mass, theta_e=0.3, cx=0.2, cy=-0.1)]),
-              Plane(0.4, [functools.partial(sis, theta_e=1.1, cx=0.03, cy=0.02)])]
+    kw = [
+        {"theta_E": 0.3, "center_x": 0.2, "center_y": -0.1},
+        {"theta_E": 1.1, "center_x": 0.03, "center_y": 0.02},
+    ]
+    planes = [
+        Plane(0.1, [functools.partial(point_mass, theta_e=0.3, cx=0.2, cy=-0.1)]),
+        Plane(0.4, [functools.partial(sis, theta_e=1.1, cx=0.03, cy=0.02)]),
+    ]
     for zc in (None, 1.0):
-        lm = LensModel(["POINT_MASS", "SIS"], z_source=0.6, lens_redshift_list=[0.1, 0.4], multi_plane=True,
-                       cosmo=Planck18, z_source_convention=zc if zc is not None else 0.6)
+        lm = LensModel(
+            ["POINT_MASS", "SIS"],
+            z_source=0.6,
+            lens_redshift_list=[0.1, 0.4],
+            multi_plane=True,
+            cosmo=Planck18,
+            z_source_convention=zc if zc is not None else 0.6,
+        )
         rx, ry = lm.ray_shooting(x.numpy().ravel(), y.numpy().ravel(), kw)
         bx, by = multi_plane_ray_shoot(x, y, planes, 0.6, z_convention=zc)
         np.testing.assert_allclose(bx.numpy().ravel(), rx, rtol=0, atol=1e-8)
@@ -226,9 +290,19 @@ def test_cuda_matches_cpu():
     p_cpu = _many_planes(torch.float64, np.random.default_rng(2), n_planes=10)
     ref = multi_plane_ray_shoot(x, y, p_cpu, 1.0)
     dev = torch.device("cuda")
-    p_gpu = [Plane(p.z, [functools.partial(d.func, **{k: (v.to(dev) if torch.is_tensor(v) else v)
-                                                      for k, v in d.keywords.items()}) for d in p.deflectors])
-             for p in p_cpu]
+    p_gpu = [
+        Plane(
+            p.z,
+            [
+                functools.partial(
+                    d.func,
+                    **{k: (v.to(dev) if torch.is_tensor(v) else v) for k, v in d.keywords.items()},
+                )
+                for d in p.deflectors
+            ],
+        )
+        for p in p_cpu
+    ]
     out = multi_plane_ray_shoot(x.to(dev), y.to(dev), p_gpu, 1.0)
     assert out[0].device.type == "cuda"
     torch.testing.assert_close(out[0].cpu(), ref[0], rtol=1e-12, atol=1e-12)
@@ -245,14 +319,27 @@ def test_report_numbers(rng):
 
     # 1. lenstronomy agreement
     x, y = grid(n=100)
-    kw = [{"theta_E": 0.3, "center_x": 0.2, "center_y": -0.1}, {"theta_E": 1.1, "center_x": 0.03, "center_y": 0.02}]
-    lm = LensModel(["POINT_MASS", "SIS"], z_source=0.6, lens_redshift_list=[0.1, 0.4], multi_plane=True,
-                   cosmo=Planck18)
+    kw = [
+        {"theta_E": 0.3, "center_x": 0.2, "center_y": -0.1},
+        {"theta_E": 1.1, "center_x": 0.03, "center_y": 0.02},
+    ]
+    lm = LensModel(
+        ["POINT_MASS", "SIS"],
+        z_source=0.6,
+        lens_redshift_list=[0.1, 0.4],
+        multi_plane=True,
+        cosmo=Planck18,
+    )
     rx, _ = lm.ray_shooting(x.numpy().ravel(), y.numpy().ravel(), kw)
-    planes = [Plane(0.1, [functools.partial(point_mass, theta_e=0.3, cx=0.2, cy=-0.1)]),
-              Plane(0.4, [functools.partial(sis, theta_e=1.1, cx=0.03, cy=0.02)])]
+    planes = [
+        Plane(0.1, [functools.partial(point_mass, theta_e=0.3, cx=0.2, cy=-0.1)]),
+        Plane(0.4, [functools.partial(sis, theta_e=1.1, cx=0.03, cy=0.02)]),
+    ]
     bx, _ = multi_plane_ray_shoot(x, y, planes, 0.6)
-    print(f"\nlenstronomy max|dbeta| = {np.abs(bx.numpy().ravel() - rx).max():.2e} arcsec (100x100, 2 planes)")
+    print(
+        f"\nlenstronomy max|dbeta| = {np.abs(bx.numpy().ravel() - rx).max():.2e} arcsec "
+        "(100x100, 2 planes)"
+    )
 
     # 2. a training-like scene: B systems, lens (SIS) + 1500 point-mass subhalos at z_lens,
     #    60 LoS slices of 30 point masses each, 100x100 grid, float64 and float32
@@ -264,17 +351,28 @@ def test_report_numbers(rng):
         g = np.random.default_rng(3)
         xx, yy = grid(n=100, dtype=dt, batch=b)
 
-        def pop(n):
-            p = packed({"theta_e": g.uniform(1e-3, 2e-2, b * n), "cx": g.uniform(-2, 2, b * n),
-                        "cy": g.uniform(-2, 2, b * n)}, np.full(b, n), dtype=dt)
+        def pop(n, g=g, dt=dt):
+            p = packed(
+                {
+                    "theta_e": g.uniform(1e-3, 2e-2, b * n),
+                    "cx": g.uniform(-2, 2, b * n),
+                    "cy": g.uniform(-2, 2, b * n),
+                },
+                np.full(b, n),
+                dtype=dt,
+            )
             return functools.partial(point_masses, **p)
 
         pls = [Plane(zl, [functools.partial(sis, theta_e=torch.tensor(1.1, dtype=dt)), pop(n_sub)])]
         pls += [Plane(z, [pop(n_los)]) for z in np.arange(n_slice) * 0.01 + 0.015 if z < zs]
         t0 = time.perf_counter()
         out[dt] = multi_plane_ray_shoot(xx, yy, sorted(pls, key=lambda p: float(np.max(p.z))), zs)
-        print(f"{dt}: {len(pls)} planes, B={b}, {n_sub} subhalos + {len(pls) - 1}x{n_los} LoS, "
-              f"100x100: {time.perf_counter() - t0:.2f} s")
-    d = torch.hypot(*(o32.double() - o64 for o32, o64 in zip(out[torch.float32], out[torch.float64])))
+        print(
+            f"{dt}: {len(pls)} planes, B={b}, {n_sub} subhalos + {len(pls) - 1}x{n_los} LoS, "
+            f"100x100: {time.perf_counter() - t0:.2f} s"
+        )
+    d = torch.hypot(
+        *(o32.double() - o64 for o32, o64 in zip(out[torch.float32], out[torch.float64]))
+    )
     q = torch.quantile(d.ravel(), torch.tensor([0.5, 0.99], dtype=d.dtype))
     print(f"float32 - float64 |dbeta|: median {q[0]:.1e}, 99% {q[1]:.1e}, max {d.max():.1e} arcsec")

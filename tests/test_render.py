@@ -1,4 +1,5 @@
-"""Tests of the batched renderer (subslope.render.pipeline, subslope.physics.pairs.sums, subslope.render.nearfar)."""
+"""Tests of the batched renderer (subslope.render.pipeline, subslope.physics.pairs.sums,
+subslope.render.nearfar)."""
 
 from __future__ import annotations
 
@@ -8,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.render import pipeline as R
-from subslope.render import counters, populations, kernels
 from subslope.physics.grid import pixel_grid
 from subslope.physics.instrument import gaussian_psf, noise_sigma_map
 from subslope.physics.light.pixelated import pad_stamps
-from subslope.physics.light.sersic import sersic_amp_from_flux, magnitude_to_flux
-from subslope.simulation.los import LosPopulation
+from subslope.physics.light.sersic import magnitude_to_flux, sersic_amp_from_flux
 from subslope.physics.profiles.epl import epl_convergence, epl_deflection
+from subslope.render import counters, kernels, populations
+from subslope.render import pipeline as R
+from subslope.simulation.los import LosPopulation
 from subslope.simulation.subhalos import SubhaloPopulation
 
 PSF = torch.as_tensor(gaussian_psf(0.1, 0.04))
@@ -26,37 +27,66 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # ------------------------------------------------------------------------- builders
-def macro_of(b: int = 1, *, seed: int = 0, multipoles=True, shear=True, lens_light=True,
-             sersic_source=True) -> dict[str, np.ndarray]:
+def macro_of(
+    b: int = 1, *, seed: int = 0, multipoles=True, shear=True, lens_light=True, sersic_source=True
+) -> dict[str, np.ndarray]:
     g = np.random.default_rng(seed)
     u = lambda lo, hi: g.uniform(lo, hi, b)  # noqa: E731
-    m = {"z_lens": u(0.15, 0.25), "z_source": u(0.5, 0.7), "src_x": u(-0.1, 0.1), "src_y": u(-0.1, 0.1),
-         "src_rotation": u(-np.pi, np.pi), "lens_x": u(-0.2, 0.2), "lens_y": u(-0.2, 0.2),
-         "theta_e": u(0.9, 1.3), "lens_e1": u(-0.2, 0.2), "lens_e2": u(-0.2, 0.2),
-         "gamma_ml": np.clip(g.normal(2, 0.1, b), 1.1, 2.9)}
+    m = {
+        "z_lens": u(0.15, 0.25),
+        "z_source": u(0.5, 0.7),
+        "src_x": u(-0.1, 0.1),
+        "src_y": u(-0.1, 0.1),
+        "src_rotation": u(-np.pi, np.pi),
+        "lens_x": u(-0.2, 0.2),
+        "lens_y": u(-0.2, 0.2),
+        "theta_e": u(0.9, 1.3),
+        "lens_e1": u(-0.2, 0.2),
+        "lens_e2": u(-0.2, 0.2),
+        "gamma_ml": np.clip(g.normal(2, 0.1, b), 1.1, 2.9),
+    }
     if sersic_source:
-        m.update(src_mag=u(20, 23), src_r=u(0.1, 0.4), src_n=u(0.8, 3), src_e1=u(-0.3, 0.3),
-                 src_e2=u(-0.3, 0.3))
+        m.update(
+            src_mag=u(20, 23),
+            src_r=u(0.1, 0.4),
+            src_n=u(0.8, 3),
+            src_e1=u(-0.3, 0.3),
+            src_e2=u(-0.3, 0.3),
+        )
     if multipoles:
         m.update(a3=u(0, 0.05), phi3=u(-np.pi, np.pi), a4=u(0, 0.05), phi4=u(-np.pi, np.pi))
     if shear:
         m.update(shear_g1=u(-0.1, 0.1), shear_g2=u(-0.1, 0.1))
     if lens_light:
-        m.update(light_mag=u(17, 19), light_r=np.abs(g.normal(0.8, 0.15, b)),
-                 light_n=np.clip(g.normal(2, 0.5, b), 0.5, 8), light_e1=u(-0.1, 0.1), light_e2=u(-0.1, 0.1))
+        m.update(
+            light_mag=u(17, 19),
+            light_r=np.abs(g.normal(0.8, 0.15, b)),
+            light_n=np.clip(g.normal(2, 0.5, b), 0.5, 8),
+            light_e1=u(-0.1, 0.1),
+            light_e2=u(-0.1, 0.1),
+        )
     return m
 
 
-def subs_of(counts, *, seed=0, gamma=(1.5, 2.5), log_amp=(-3.0, -1.5), ring=True) -> SubhaloPopulation:
+def subs_of(
+    counts, *, seed=0, gamma=(1.5, 2.5), log_amp=(-3.0, -1.5), ring=True
+) -> SubhaloPopulation:
     g = np.random.default_rng(seed)
     counts = np.asarray(counts, dtype=np.int64)
     n = int(counts.sum())
     r = g.uniform(0.9, 1.3, n) if ring else g.uniform(0, 2, n)
     phi = g.uniform(-np.pi, np.pi, n)
     return SubhaloPopulation(
-        profile="epl", counts=counts, mass=np.full(n, 1e8), x=r * np.cos(phi), y=r * np.sin(phi),
-        gamma=g.uniform(*gamma, n), e1=g.uniform(-0.2, 0.2, n), e2=g.uniform(-0.2, 0.2, n),
-        amp=10 ** g.uniform(*log_amp, n))
+        profile="epl",
+        counts=counts,
+        mass=np.full(n, 1e8),
+        x=r * np.cos(phi),
+        y=r * np.sin(phi),
+        gamma=g.uniform(*gamma, n),
+        e1=g.uniform(-0.2, 0.2, n),
+        e2=g.uniform(-0.2, 0.2, n),
+        amp=10 ** g.uniform(*log_amp, n),
+    )
 
 
 def los_of(counts, *, seed=0, zero=False) -> LosPopulation:
@@ -65,9 +95,18 @@ def los_of(counts, *, seed=0, zero=False) -> LosPopulation:
     n = int(counts.sum())
     z = 0.015 + 0.01 * g.integers(0, 45, n)  # slice mid-redshifts < 0.5 <= z_source
     amp = np.zeros(n) if zero else 10 ** g.uniform(-3, -1.5, n)
-    return LosPopulation(profile="epl", counts=counts, z=z, x=g.uniform(-2, 2, n), y=g.uniform(-2, 2, n),
-                         m200=np.full(n, 1e8), amp=amp, gamma=g.uniform(1.5, 2.5, n),
-                         e1=g.uniform(-0.2, 0.2, n), e2=g.uniform(-0.2, 0.2, n))
+    return LosPopulation(
+        profile="epl",
+        counts=counts,
+        z=z,
+        x=g.uniform(-2, 2, n),
+        y=g.uniform(-2, 2, n),
+        m200=np.full(n, 1e8),
+        amp=amp,
+        gamma=g.uniform(1.5, 2.5, n),
+        e1=g.uniform(-0.2, 0.2, n),
+        e2=g.uniform(-0.2, 0.2, n),
+    )
 
 
 def cosmos_like(b: int, seed=0) -> R.PixelatedSources:
@@ -124,23 +163,40 @@ def test_finite_on_stiff_draws():
 def _boom(name):
     def f(*a, **k):
         raise AssertionError(f"{name} must not run")
+
     return f
 
 
 def test_left_out_stages_are_not_evaluated(monkeypatch):
     m = macro_of(2, multipoles=False, shear=False, lens_light=False, sersic_source=False)
-    for name in ("multi_plane_ray_shoot", "sersic_ellipse_from_magnitude", "population_pass",
-                 "shear_deflection", "multipole_deflection"):
+    for name in (
+        "multi_plane_ray_shoot",
+        "sersic_ellipse_from_magnitude",
+        "population_pass",
+        "shear_deflection",
+        "multipole_deflection",
+    ):
         monkeypatch.setattr(R, name, _boom(name))
     for name in ("split_pass", "member_table"):
         monkeypatch.setattr(populations, name, _boom(name))
     counters.reset_step_counts()
-    img = R.render(m, PSF, FAST, sources=cosmos_like(2), subhalos=subs_of([0, 0]), los=los_of([0, 0]))
+    img = R.render(
+        m, PSF, FAST, sources=cosmos_like(2), subhalos=subs_of([0, 0]), los=los_of([0, 0])
+    )
     assert torch.isfinite(img).all()
     c = counters.STEP_COUNTS
     assert c["single_plane"] == 2 and c["main_lens"] == 2 and c["source_pixelated"] == 2
-    for stage in ("multi_plane", "los", "subhalos", "split", "shear", "multipoles", "lens_light",
-                  "source_sersic", "supersample_bin"):
+    for stage in (
+        "multi_plane",
+        "los",
+        "subhalos",
+        "split",
+        "shear",
+        "multipoles",
+        "lens_light",
+        "source_sersic",
+        "supersample_bin",
+    ):
         assert c[stage] == 0, stage
 
 
@@ -157,11 +213,23 @@ def test_stage_counts_when_on():
 # ------------------------------------------------------------------ determinism
 def _split(m, subs, los, i):
     off_s, off_l = subs.offsets, np.concatenate([[0], np.cumsum(los.counts)])
-    mi = {k: v[i:i + 1] for k, v in m.items()}
-    si = dataclasses.replace(subs, counts=subs.counts[i:i + 1], **{
-        k: getattr(subs, k)[off_s[i]:off_s[i + 1]] for k in ("mass", "x", "y", "gamma", "e1", "e2", "amp")})
-    li = dataclasses.replace(los, counts=los.counts[i:i + 1], **{
-        k: getattr(los, k)[off_l[i]:off_l[i + 1]] for k in ("z", "x", "y", "m200", "amp", "gamma", "e1", "e2")})
+    mi = {k: v[i : i + 1] for k, v in m.items()}
+    si = dataclasses.replace(
+        subs,
+        counts=subs.counts[i : i + 1],
+        **{
+            k: getattr(subs, k)[off_s[i] : off_s[i + 1]]
+            for k in ("mass", "x", "y", "gamma", "e1", "e2", "amp")
+        },
+    )
+    li = dataclasses.replace(
+        los,
+        counts=los.counts[i : i + 1],
+        **{
+            k: getattr(los, k)[off_l[i] : off_l[i + 1]]
+            for k in ("z", "x", "y", "m200", "amp", "gamma", "e1", "e2")
+        },
+    )
     return mi, si, li
 
 
@@ -237,14 +305,27 @@ def test_kernel_and_negative_sheet():
     x, y = pixel_grid(100, 0.04, dtype=torch.float64)
     x, y = x.reshape(1, -1), y.reshape(1, -1)
     subs = subs_of([37], seed=9, gamma=(1.05, 2.95))
-    pop = populations.pack_population("epl", {k: getattr(subs, k) for k in ("amp", "gamma", "e1", "e2", "x", "y")},
-                  subs.counts, 20, torch.float64, "cpu")
+    pop = populations.pack_population(
+        "epl",
+        {k: getattr(subs, k) for k in ("amp", "gamma", "e1", "e2", "x", "y")},
+        subs.counts,
+        20,
+        torch.float64,
+        "cpu",
+    )
     s64 = dataclasses.replace(FAST, dtype=torch.float64, n_terms=20)
-    ax, ay, k_sheet = populations.population_pass(pop, x, y, s64, kernels.kernels_for(s64, torch.device("cpu")), 100 * 100)
-    p = {k: torch.as_tensor(getattr(subs, k))[:, None] for k in ("amp", "gamma", "e1", "e2", "x", "y")}
+    ax, ay, k_sheet = populations.population_pass(
+        pop, x, y, s64, kernels.kernels_for(s64, torch.device("cpu")), 100 * 100
+    )
+    p = {
+        k: torch.as_tensor(getattr(subs, k))[:, None]
+        for k in ("amp", "gamma", "e1", "e2", "x", "y")
+    }
     kap = epl_convergence(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"]).sum(0)
     assert abs(float(kap.mean() + k_sheet[0, 0])) < 1e-12 * float(kap.abs().mean())
-    ex, ey = epl_deflection(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"], n_terms=20)
+    ex, ey = epl_deflection(
+        x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"], n_terms=20
+    )
     ex, ey = ex.sum(0) + k_sheet[0] * x[0], ey.sum(0) + k_sheet[0] * y[0]
     scale = float(torch.hypot(ex, ey).max())
     assert float((ax[0] - ex).abs().max()) < 1e-12 * scale
@@ -284,8 +365,8 @@ def test_lens_light_flux_matches_magnitude():
 
 # ------------------------------------------------------------------ accuracy of the defaults
 def _errors(img, ref):
-    d = (img.double() - ref)
-    return float((d.abs() / noise_sigma_map(ref)).max()), float((d.norm() / ref.norm()))
+    d = img.double() - ref
+    return float((d.abs() / noise_sigma_map(ref)).max()), float(d.norm() / ref.norm())
 
 
 @pytest.mark.parametrize("seed,n_sub,n_los", [(20, 1500, 12), (22, 3000, 0)])
@@ -295,8 +376,9 @@ def test_default_settings_error_budget(seed, n_sub, n_los):
     subs = subs_of([n_sub], seed=seed, gamma=(1.1, 2.9), log_amp=(-3.5, -1.0))
     los = los_of([n_los], seed=seed) if n_los else None
     default = R.RenderSettings(device="cpu")
-    ref = dataclasses.replace(default, dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off",
-                              chunk_members=64)
+    ref = dataclasses.replace(
+        default, dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off", chunk_members=64
+    )
     img = R.render(m, PSF, default, subhalos=subs, los=los)
     img_ref = R.render(m, PSF, ref, subhalos=subs, los=los)
     max_sigma, rel = _errors(img[0], img_ref[0])
@@ -319,28 +401,62 @@ def test_against_lenstronomy():
     ours = R.render(m, PSF, s, subhalos=subs)[0].numpy()
 
     g = {k: float(v[0]) for k, v in m.items()}
-    kw_lens = [dict(theta_E=g["theta_e"], gamma=g["gamma_ml"], e1=g["lens_e1"], e2=g["lens_e2"],
-                    center_x=g["lens_x"], center_y=g["lens_y"]),
-               dict(gamma1=g["shear_g1"], gamma2=g["shear_g2"], ra_0=0.0, dec_0=0.0),
-               dict(m=3, a_m=g["a3"], phi_m=g["phi3"], center_x=g["lens_x"], center_y=g["lens_y"]),
-               dict(m=4, a_m=g["a4"], phi_m=g["phi4"], center_x=g["lens_x"], center_y=g["lens_y"])]
+    kw_lens = [
+        dict(
+            theta_E=g["theta_e"],
+            gamma=g["gamma_ml"],
+            e1=g["lens_e1"],
+            e2=g["lens_e2"],
+            center_x=g["lens_x"],
+            center_y=g["lens_y"],
+        ),
+        dict(gamma1=g["shear_g1"], gamma2=g["shear_g2"], ra_0=0.0, dec_0=0.0),
+        dict(m=3, a_m=g["a3"], phi_m=g["phi3"], center_x=g["lens_x"], center_y=g["lens_y"]),
+        dict(m=4, a_m=g["a4"], phi_m=g["phi4"], center_x=g["lens_x"], center_y=g["lens_y"]),
+    ]
     models = ["EPL", "SHEAR", "MULTIPOLE", "MULTIPOLE"]
-    sub_kw = [dict(theta_E=float(a ** (1 / (gm - 1))), gamma=float(gm), e1=float(e1), e2=float(e2),
-                   center_x=float(x), center_y=float(y))
-              for a, gm, e1, e2, x, y in zip(subs.amp, subs.gamma, subs.e1, subs.e2, subs.x, subs.y)]
+    sub_kw = [
+        dict(
+            theta_E=float(a ** (1 / (gm - 1))),
+            gamma=float(gm),
+            e1=float(e1),
+            e2=float(e2),
+            center_x=float(x),
+            center_y=float(y),
+        )
+        for a, gm, e1, e2, x, y in zip(subs.amp, subs.gamma, subs.e1, subs.e2, subs.x, subs.y)
+    ]
     n, d = 100, 0.04
     xx, yy = pixel_grid(n, d, dtype=torch.float64)
     kappa = LensModel(["EPL"] * len(sub_kw)).kappa(xx.numpy().ravel(), yy.numpy().ravel(), sub_kw)
     kw_lens += sub_kw + [dict(kappa=-float(np.mean(kappa)), ra_0=0.0, dec_0=0.0)]
     models += ["EPL"] * len(sub_kw) + ["CONVERGENCE"]
     amp = float(sersic_amp_from_flux(magnitude_to_flux(g["src_mag"]), g["src_r"], g["src_n"]))
-    kw_src = [dict(amp=amp, R_sersic=g["src_r"], n_sersic=g["src_n"], e1=g["src_e1"], e2=g["src_e2"],
-                   center_x=g["src_x"], center_y=g["src_y"])]
-    data = ImageData(image_data=np.zeros((n, n)), ra_at_xy_0=-(n - 1) / 2 * d, dec_at_xy_0=-(n - 1) / 2 * d,
-                     transform_pix2angle=np.array([[d, 0], [0, d]]))
+    kw_src = [
+        dict(
+            amp=amp,
+            R_sersic=g["src_r"],
+            n_sersic=g["src_n"],
+            e1=g["src_e1"],
+            e2=g["src_e2"],
+            center_x=g["src_x"],
+            center_y=g["src_y"],
+        )
+    ]
+    data = ImageData(
+        image_data=np.zeros((n, n)),
+        ra_at_xy_0=-(n - 1) / 2 * d,
+        dec_at_xy_0=-(n - 1) / 2 * d,
+        transform_pix2angle=np.array([[d, 0], [0, d]]),
+    )
     psf = LPSF(psf_type="PIXEL", kernel_point_source=PSF.numpy())
-    im = ImageModel(data, psf, lens_model_class=LensModel(models), source_model_class=LightModel(["SERSIC_ELLIPSE"]),
-                    kwargs_numerics={"supersampling_factor": 1})
+    im = ImageModel(
+        data,
+        psf,
+        lens_model_class=LensModel(models),
+        source_model_class=LightModel(["SERSIC_ELLIPSE"]),
+        kwargs_numerics={"supersampling_factor": 1},
+    )
     theirs = im.image(kwargs_lens=kw_lens, kwargs_source=kw_src)
     rel = np.linalg.norm(ours - theirs) / np.linalg.norm(theirs)
     print(f"lenstronomy rel L2 = {rel:.2e}")
@@ -352,9 +468,14 @@ def multi_macro(b=3, seed=0, ncomp=None, kind_over=None):
     from subslope.simulation.macro import sample_macro
     from subslope.simulation.scenes import Scene
 
-    over = {"source": {"kind": "multi_sersic", "r_sersic": {"dist": "uniform", "low": 0.1, "high": 0.2},
-                       "n_sersic": {"dist": "uniform", "low": 0.8, "high": 1.5}},
-            "components": {"los": False, "subhalos": False, "lens_light": False}}
+    over = {
+        "source": {
+            "kind": "multi_sersic",
+            "r_sersic": {"dist": "uniform", "low": 0.1, "high": 0.2},
+            "n_sersic": {"dist": "uniform", "low": 0.8, "high": 1.5},
+        },
+        "components": {"los": False, "subhalos": False, "lens_light": False},
+    }
     if ncomp is not None:
         over["source"]["multi_sersic"] = {"n_components": ncomp}
     return sample_macro(Scene.from_config("train", over), b, np.random.default_rng(seed))
@@ -369,7 +490,9 @@ def test_multi_sersic_unlensed_flux_equals_total_magnitude():
     s = dataclasses.replace(FAST, dtype=torch.float64, npix=160, pixel_scale=0.04, supersample=3)
     img = R.render(m, PSF, s)
     flux = img.sum((1, 2)).numpy()
-    np.testing.assert_allclose(flux, magnitude_to_flux(torch.as_tensor(m["src_mag_total"])).numpy(), rtol=2e-3)
+    np.testing.assert_allclose(
+        flux, magnitude_to_flux(torch.as_tensor(m["src_mag_total"])).numpy(), rtol=2e-3
+    )
     assert set(m["src_ncomp"]) != {1}
 
 
@@ -387,8 +510,9 @@ def test_multi_sersic_components_off_are_not_evaluated(monkeypatch):
     m = multi_macro(3, seed=1)
     m["src_ncomp"][:] = [1, 3, 2]
     for j in range(4):  # the sampled fractions follow the count; rewrite them to match
-        m[f"src_frac_{j}"][:] = [[1, 0.5, 0.6][i] * (j < m["src_ncomp"][i]) if j else [1, 0.5, 0.6][i]
-                                 for i in range(3)]
+        m[f"src_frac_{j}"][:] = [
+            [1, 0.5, 0.6][i] * (j < m["src_ncomp"][i]) if j else [1, 0.5, 0.6][i] for i in range(3)
+        ]
     counters.reset_step_counts()
     R.render(m, PSF, FAST)  # CPU: one image at a time
     assert counters.STEP_COUNTS["source_multi_sersic"] == 3
@@ -398,9 +522,18 @@ def test_multi_sersic_components_off_are_not_evaluated(monkeypatch):
 
 def test_multi_sersic_one_component_equals_sersic_and_batch_invariance():
     m = multi_macro(3, seed=2, ncomp=1)
-    single = {k: v for k, v in m.items() if not k.startswith("src_") or k in ("src_x", "src_y", "src_rotation")}
-    single.update(src_mag=m["src_mag_total"], src_r=m["src_r_0"], src_n=m["src_n_0"], src_e1=m["src_e1_0"],
-                  src_e2=m["src_e2_0"])
+    single = {
+        k: v
+        for k, v in m.items()
+        if not k.startswith("src_") or k in ("src_x", "src_y", "src_rotation")
+    }
+    single.update(
+        src_mag=m["src_mag_total"],
+        src_r=m["src_r_0"],
+        src_n=m["src_n_0"],
+        src_e1=m["src_e1_0"],
+        src_e2=m["src_e2_0"],
+    )
     assert torch.equal(R.render(m, PSF, FAST), R.render(single, PSF, FAST))
     m4 = multi_macro(3, seed=2)
     full = R.render(m4, PSF, FAST)

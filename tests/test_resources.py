@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from subslope.io import resources as res
 from subslope.cli import main as cli_main
+from subslope.io import resources as res
 
 
 def _entry(rel: str, content: bytes, url: str | None = None) -> res.RegistryEntry:
@@ -29,13 +29,23 @@ def test_registry_lists_the_real_data():
     assert sum(p.startswith("cosmos/") for p in paths) == 3
     by_path = {e.path: e for e in reg}
     assert by_path["hst/catalog.csv"].url is None  # compiled for this project: mirror-only
-    assert all(e.url and e.url.startswith("https://raw.githubusercontent.com/") for e in reg if e.path != "hst/catalog.csv")
-    assert by_path["psf/emp_psf_f814w.fits"].url.endswith("paltas/main/datasets/hst_psf/emp_psf_f814w.fits")
+    assert all(
+        e.url and e.url.startswith("https://raw.githubusercontent.com/")
+        for e in reg
+        if e.path != "hst/catalog.csv"
+    )
+    assert by_path["psf/emp_psf_f814w.fits"].url.endswith(
+        "paltas/main/datasets/hst_psf/emp_psf_f814w.fits"
+    )
 
 
 def test_registry_matches_mirror_checksums(data_dir):
     """The registry sums equal the mirror's SHA256SUMS (and the files themselves)."""
-    sums = dict(reversed(line.split()) for line in (data_dir / "SHA256SUMS").read_text().splitlines() if line.strip())
+    sums = dict(
+        reversed(line.split())
+        for line in (data_dir / "SHA256SUMS").read_text().splitlines()
+        if line.strip()
+    )
     for entry in res.load_registry():
         if entry.path in sums:
             assert sums[entry.path] == entry.sha256, entry.path
@@ -69,7 +79,11 @@ def test_checksum_mismatch_names_file_and_sums_and_leaves_nothing(tmp_path):
     with pytest.raises(res.ChecksumError) as info:
         res.fetch(dest, mirror=mirror, entries=[entry])
     msg = str(info.value)
-    assert "hst/a.npy" in msg and entry.sha256 in msg and hashlib.sha256(b"corrupted").hexdigest() in msg
+    assert (
+        "hst/a.npy" in msg
+        and entry.sha256 in msg
+        and hashlib.sha256(b"corrupted").hexdigest() in msg
+    )
     assert not (dest / "hst" / "a.npy").exists()
     assert not _leftovers(dest)
     assert isinstance(info.value, ValueError)
@@ -94,7 +108,12 @@ def test_missing_file_without_download(tmp_path):
         res.fetch(tmp_path / "dest", mirror=mirror, entries=[entry])
     mirror_only = _entry("hst/catalog.csv", b"x")
     with pytest.raises(res.MissingResourceError, match="mirror-only"):
-        res.fetch(tmp_path / "dest", mirror=tmp_path / "nowhere", allow_download=True, entries=[mirror_only])
+        res.fetch(
+            tmp_path / "dest",
+            mirror=tmp_path / "nowhere",
+            allow_download=True,
+            entries=[mirror_only],
+        )
     assert not _leftovers(tmp_path / "dest")
 
 
@@ -112,7 +131,9 @@ def test_download_path_verifies_and_is_atomic(tmp_path, monkeypatch):
         expected = known_hash.split(":", 1)[1]
         if hashlib.sha256(payload["bytes"]).hexdigest() != expected:
             out.unlink()
-            raise ValueError(f"SHA256 hash of downloaded file does not match the known hash: expected {expected}")
+            raise ValueError(
+                f"SHA256 hash of downloaded file does not match the known hash: expected {expected}"
+            )
         return str(out)
 
     monkeypatch.setattr(pooch, "retrieve", fake_retrieve)
@@ -134,5 +155,8 @@ def test_download_path_verifies_and_is_atomic(tmp_path, monkeypatch):
 def test_cli_fetch_data(data_dir, tmp_path, capsys):
     assert cli_main(["fetch-data", "--mirror", str(data_dir), "--dest", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "hst" / "catalog.csv").is_file()
-    assert cli_main(["fetch-data", "--mirror", str(tmp_path / "none"), "--dest", str(tmp_path / "s")]) == 1
+    assert (
+        cli_main(["fetch-data", "--mirror", str(tmp_path / "none"), "--dest", str(tmp_path / "s")])
+        == 1
+    )
     assert "not found" in capsys.readouterr().err

@@ -11,8 +11,8 @@ import pytest
 import yaml
 from scipy import stats
 
-from subslope.simulation.priors import Normal, PriorError, Uniform, UniformInt
 from subslope.simulation.macro import sample_macro
+from subslope.simulation.priors import Normal, PriorError, Uniform, UniformInt
 from subslope.simulation.scenes import PRESETS, Scene, SceneError, scenes_from_config  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,8 +20,18 @@ FRAGMENT = ROOT / "config" / "config.yaml"
 SCHEMA_FRAGMENT = ROOT / "src" / "subslope" / "schemas" / "config.schema.yaml"
 
 ALWAYS = {
-    "z_lens", "z_source", "src_x", "src_y", "src_rotation", "lens_x", "lens_y", "theta_e",
-    "lens_e1", "lens_e2", "gamma_ml", "set_index",
+    "z_lens",
+    "z_source",
+    "src_x",
+    "src_y",
+    "src_rotation",
+    "lens_x",
+    "lens_y",
+    "theta_e",
+    "lens_e1",
+    "lens_e2",
+    "gamma_ml",
+    "set_index",
 }
 
 
@@ -37,7 +47,9 @@ def test_named_scenes_exist(scenes):
 def test_train_defaults_equal_paper_table(scenes):
     s = scenes["train"]
     assert s.redshifts.z_lens == Uniform(0.15, 0.25) and s.redshifts.z_source == Uniform(0.5, 0.7)
-    assert s.source.x == Uniform(-0.1, 0.1) and s.source.kind == "cosmos" and s.source.split == "train"
+    assert (
+        s.source.x == Uniform(-0.1, 0.1) and s.source.kind == "cosmos" and s.source.split == "train"
+    )
     assert s.main_lens.x == Uniform(-0.2, 0.2)
     assert s.main_lens.theta_e == Uniform(0.9, 1.3)
     assert s.main_lens.e1 == Uniform(-0.2, 0.2)
@@ -64,7 +76,11 @@ def test_evaluation_and_cdm_presets(scenes):
     v, t = scenes["validation"], scenes["test_epl"]
     assert v.subhalos.count == UniformInt(0, 1800) and v.source.split == "validation"
     assert v.main_lens == scenes["train"].main_lens
-    assert t.images_per_set == 13 and t.source.split == "test" and t.subhalos.count == UniformInt(0, 1800)
+    assert (
+        t.images_per_set == 13
+        and t.source.split == "test"
+        and t.subhalos.count == UniformInt(0, 1800)
+    )
     for name, prof in (("nfw", "nfw"), ("tnfw", "tnfw")):
         c = scenes[name]
         assert c.subhalos.profile == prof and c.subhalos.placement == "everywhere"
@@ -79,7 +95,9 @@ def test_overrides_merge_and_replace_priors():
     s = Scene.from_config(
         "train",
         {
-            "main_lens": {"gamma": {"dist": "normal", "mean": 2.0, "std": 0.2, "low": 1.1, "high": 2.9}},
+            "main_lens": {
+                "gamma": {"dist": "normal", "mean": 2.0, "std": 0.2, "low": 1.1, "high": 2.9}
+            },
             "lens_light": {"mag": {"dist": "uniform", "low": 16.0, "high": 19.0}},
             "subhalos": {"threshold_fraction": 0.5},
         },
@@ -94,16 +112,34 @@ def test_overrides_merge_and_replace_priors():
 @pytest.mark.parametrize(
     "spec, needle",
     [
-        ({"main_lens": {"theta_e": {"dist": "uniform", "low": 1.3, "high": 0.9}}}, "scenes.train.main_lens.theta_e.low"),
-        ({"main_lens": {"theta_e": {"dist": "uniform", "low": -1.0, "high": 0.9}}}, "scenes.train.main_lens.theta_e"),
+        (
+            {"main_lens": {"theta_e": {"dist": "uniform", "low": 1.3, "high": 0.9}}},
+            "scenes.train.main_lens.theta_e.low",
+        ),
+        (
+            {"main_lens": {"theta_e": {"dist": "uniform", "low": -1.0, "high": 0.9}}},
+            "scenes.train.main_lens.theta_e",
+        ),
         ({"main_lens": {"theta_ee": 1.0}}, "scenes.train.main_lens.theta_ee"),
         ({"subhalos": {"profile": "burkert"}}, "scenes.train.subhalos.profile"),
         ({"subhalos": {"placement": "ring"}}, "scenes.train.subhalos.placement"),
         ({"subhalos": {"threshold_fraction": 1.5}}, "scenes.train.subhalos.threshold_fraction"),
-        ({"subhalos": {"count": {"dist": "uniform", "low": 0, "high": 5}}}, "scenes.train.subhalos.count"),
-        ({"subhalos": {"gamma": {"dist": "uniform", "low": 0.5, "high": 2.9}}}, "scenes.train.subhalos.gamma"),
-        ({"subhalos": {"mass": {"slope": -1.9, "m_min": 1e10, "m_max": 1e7}}}, "scenes.train.subhalos.mass.low"),
-        ({"redshifts": {"z_source": {"dist": "uniform", "low": 0.2, "high": 0.7}}}, "scenes.train.redshifts"),
+        (
+            {"subhalos": {"count": {"dist": "uniform", "low": 0, "high": 5}}},
+            "scenes.train.subhalos.count",
+        ),
+        (
+            {"subhalos": {"gamma": {"dist": "uniform", "low": 0.5, "high": 2.9}}},
+            "scenes.train.subhalos.gamma",
+        ),
+        (
+            {"subhalos": {"mass": {"slope": -1.9, "m_min": 1e10, "m_max": 1e7}}},
+            "scenes.train.subhalos.mass.low",
+        ),
+        (
+            {"redshifts": {"z_source": {"dist": "uniform", "low": 0.2, "high": 0.7}}},
+            "scenes.train.redshifts",
+        ),
         ({"source": {"split": "dev"}}, "scenes.train.source.split"),
         ({"components": {"shear": "yes"}}, "scenes.train.components.shear"),
         ({"images_per_set": 0}, "scenes.train.images_per_set"),
@@ -120,8 +156,22 @@ def test_bad_scene_config_names_key(spec, needle):
 
 def test_macro_keys_shapes_and_ranges(scenes, rng):
     m = sample_macro(scenes["train"], 500, rng)
-    expected = ALWAYS | {"a3", "phi3", "a4", "phi4", "shear_g1", "shear_g2", "light_mag", "light_r",
-                         "light_n", "light_e1", "light_e2", "n_sub", "gamma_sub", "delta_los"}
+    expected = ALWAYS | {
+        "a3",
+        "phi3",
+        "a4",
+        "phi4",
+        "shear_g1",
+        "shear_g2",
+        "light_mag",
+        "light_r",
+        "light_n",
+        "light_e1",
+        "light_e2",
+        "n_sub",
+        "gamma_sub",
+        "delta_los",
+    }
     assert set(m) == expected
     for k, v in m.items():
         assert v.shape == (500,), k
@@ -139,7 +189,15 @@ def test_macro_keys_shapes_and_ranges(scenes, rng):
 def test_components_off_are_absent_and_other_draws_unchanged(scenes):
     off = Scene.from_config(
         "train",
-        {"components": {"lens_light": False, "multipoles": False, "shear": False, "subhalos": False, "los": False}},
+        {
+            "components": {
+                "lens_light": False,
+                "multipoles": False,
+                "shear": False,
+                "subhalos": False,
+                "los": False,
+            }
+        },
     )
     a = sample_macro(off, 50, np.random.default_rng(1))
     b = sample_macro(scenes["train"], 50, np.random.default_rng(1))
@@ -207,6 +265,7 @@ def test_config_fragment_matches_presets_and_schema():
     assert list(validator.iter_errors(bad))
     # Every schema default of a scene key equals the train preset value.
     train = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))["scenes"]["train"]
+
     def check(props, values, where):
         for key, entry in props.items():
             if "properties" in entry:  # nested object (source.multi_sersic): compare its keys
@@ -251,7 +310,9 @@ def test_multi_sersic_same_seed_and_other_draws_unchanged():
     b = sample_macro(s, 50, np.random.default_rng(5))
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
     # the multi-Sérsic draws come last: the other parameters equal the Sérsic-kind draws
-    c = sample_macro(Scene.from_config("train", {"source": {"kind": "sersic"}}), 50, np.random.default_rng(5))
+    c = sample_macro(
+        Scene.from_config("train", {"source": {"kind": "sersic"}}), 50, np.random.default_rng(5)
+    )
     for k in ("theta_e", "gamma_ml", "n_sub", "gamma_sub", "lens_x", "delta_los"):
         assert np.array_equal(a[k], c[k]), k
     np.testing.assert_array_equal(a["src_mag_total"], c["src_mag"])
@@ -259,12 +320,20 @@ def test_multi_sersic_same_seed_and_other_draws_unchanged():
 
 
 def test_multi_sersic_fixed_count_and_bad_configs():
-    s = Scene.from_config("train", {"source": {"kind": "multi_sersic", "multi_sersic": {"n_components": 1}}})
+    s = Scene.from_config(
+        "train", {"source": {"kind": "multi_sersic", "multi_sersic": {"n_components": 1}}}
+    )
     m = sample_macro(s, 5, np.random.default_rng(0))
     assert np.all(m["src_ncomp"] == 1) and np.all(m["src_frac_0"] == 1) and "src_frac_1" not in m
     for bad, needle in [
-        ({"n_components": {"dist": "uniform_int", "low": 0, "high": 3}}, "multi_sersic.n_components"),
-        ({"n_components": {"dist": "uniform_int", "low": 1, "high": 9}}, "multi_sersic.n_components"),
+        (
+            {"n_components": {"dist": "uniform_int", "low": 0, "high": 3}},
+            "multi_sersic.n_components",
+        ),
+        (
+            {"n_components": {"dist": "uniform_int", "low": 1, "high": 9}},
+            "multi_sersic.n_components",
+        ),
         ({"n_components": {"dist": "uniform", "low": 1, "high": 3}}, "multi_sersic.n_components"),
         ({"r_sersic": {"dist": "uniform", "low": -0.1, "high": 0.1}}, "multi_sersic.r_sersic"),
         ({"share": {"dist": "uniform", "low": -1, "high": 1}}, "multi_sersic.share"),
@@ -277,21 +346,45 @@ def test_multi_sersic_fixed_count_and_bad_configs():
 
 def test_schema_accepts_and_rejects_multi_sersic():
     frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
-    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object",
-              "properties": frag["properties"], "$defs": frag["$defs"]}
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "type": "object",
+        "properties": frag["properties"],
+        "$defs": frag["$defs"],
+    }
     v = jsonschema.Draft202012Validator(schema)
 
     def ok(src):
         return not list(v.iter_errors({"scenes": {"train": {"source": src}}}))
 
     assert ok({"kind": "multi_sersic"})
-    assert ok({"kind": "multi_sersic", "multi_sersic": {"n_components": 3, "offset": {"dist": "uniform", "low": 0,
-                                                                                      "high": 0.5}}})
-    assert ok({"kind": "multi_sersic", "multi_sersic": {"n_components": {"dist": "uniform_int", "low": 2, "high": 8}}})
+    assert ok(
+        {
+            "kind": "multi_sersic",
+            "multi_sersic": {
+                "n_components": 3,
+                "offset": {"dist": "uniform", "low": 0, "high": 0.5},
+            },
+        }
+    )
+    assert ok(
+        {
+            "kind": "multi_sersic",
+            "multi_sersic": {"n_components": {"dist": "uniform_int", "low": 2, "high": 8}},
+        }
+    )
     assert not ok({"kind": "multisersic"})
     assert not ok({"kind": "multi_sersic", "multi_sersic": {"n_components": 0}})
-    assert not ok({"kind": "multi_sersic", "multi_sersic": {"n_components": {"dist": "uniform_int", "low": 1,
-                                                                             "high": 9}}})
-    assert not ok({"kind": "multi_sersic", "multi_sersic": {"n_components": {"dist": "uniform", "low": 1,
-                                                                             "high": 3}}})
+    assert not ok(
+        {
+            "kind": "multi_sersic",
+            "multi_sersic": {"n_components": {"dist": "uniform_int", "low": 1, "high": 9}},
+        }
+    )
+    assert not ok(
+        {
+            "kind": "multi_sersic",
+            "multi_sersic": {"n_components": {"dist": "uniform", "low": 1, "high": 3}},
+        }
+    )
     assert not ok({"kind": "multi_sersic", "multi_sersic": {"clumps": 2}})

@@ -16,10 +16,16 @@ def _write(path, seed=0, n=4, **kw):
     params["noise_seed"] = rng.integers(0, 2**63, n).astype(np.uint64)
     counts = rng.integers(0, 3, n)
     return shards.write_shard(
-        path, images=rng.normal(size=(n, 20, 20)), params=params, psf=np.ones((3, 3)) / 9,
+        path,
+        images=rng.normal(size=(n, 20, 20)),
+        params=params,
+        psf=np.ones((3, 3)) / 9,
         subhalos={"counts": counts, "x": rng.random(counts.sum())},
-        los={"counts": np.zeros(n, np.int64)}, sources={"ident": np.arange(n)},
-        attrs={"scene": "train", "scene_spec": {"a": [1, 2]}, "config_hash": "x"}, **kw)
+        los={"counts": np.zeros(n, np.int64)},
+        sources={"ident": np.arange(n)},
+        attrs={"scene": "train", "scene_spec": {"a": [1, 2]}, "config_hash": "x"},
+        **kw,
+    )
 
 
 def test_layout_and_roundtrip(tmp_path):
@@ -34,7 +40,9 @@ def test_layout_and_roundtrip(tmp_path):
         sub = s.ragged("subhalos", [1, 3])
         off = np.concatenate([[0], np.cumsum(s.subhalos["counts"])])
         x = s.subhalos["x"]
-        np.testing.assert_array_equal(sub["x"], np.concatenate([x[off[1]:off[2]], x[off[3]:off[4]]]))
+        np.testing.assert_array_equal(
+            sub["x"], np.concatenate([x[off[1] : off[2]], x[off[3] : off[4]]])
+        )
     assert not list(tmp_path.glob("*.tmp-*"))
 
 
@@ -97,8 +105,15 @@ def test_foreign_and_old_files(tmp_path):
 
 def test_write_validates_shapes(tmp_path):
     with pytest.raises(shards.ShardError, match="subhalos/x"):
-        shards.write_shard(tmp_path / "bad.h5", images=np.zeros((2, 4, 4)),
-                           params={k: np.zeros(2) for k in ("theta_e", "lens_x", "lens_y", "set_index", "noise_seed")},
-                           psf=np.ones((1, 1)), subhalos={"counts": np.array([1, 1]), "x": np.zeros(3)},
-                           los={"counts": np.zeros(2)}, attrs={})
+        shards.write_shard(
+            tmp_path / "bad.h5",
+            images=np.zeros((2, 4, 4)),
+            params={
+                k: np.zeros(2) for k in ("theta_e", "lens_x", "lens_y", "set_index", "noise_seed")
+            },
+            psf=np.ones((1, 1)),
+            subhalos={"counts": np.array([1, 1]), "x": np.zeros(3)},
+            los={"counts": np.zeros(2)},
+            attrs={},
+        )
     assert not list(tmp_path.iterdir())

@@ -9,15 +9,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from subslope.physics import concentration
-from subslope.physics import cosmology
 from subslope import config as cfgmod
-from subslope.simulation import los as losmod
 from subslope.io import shards
+from subslope.physics import concentration, cosmology
+from subslope.simulation import los as losmod
 from subslope.simulation import shard as simulate
-from subslope.stages import plan
 from subslope.simulation.macro import sample_macro
 from subslope.simulation.scenes import Scene
+from subslope.stages import plan
 from tests.conftest import REPO_ROOT
 
 
@@ -35,14 +34,25 @@ def config(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def train_shard(config, tmp_path_factory):
-    return simulate.simulate_shard(config, "train", 0, tmp_path_factory.mktemp("sim") / "a.h5", progress=False)
+    return simulate.simulate_shard(
+        config, "train", 0, tmp_path_factory.mktemp("sim") / "a.h5", progress=False
+    )
 
 
 def test_shard_layout(train_shard):
     with shards.open_shard(train_shard) as s:
         n = len(s)
         assert s.images.shape == (n, 100, 100) and n == 3
-        for key in ("gamma_sub", "theta_e", "lens_x", "lens_y", "set_index", "n_sub", "delta_los", "noise_seed"):
+        for key in (
+            "gamma_sub",
+            "theta_e",
+            "lens_x",
+            "lens_y",
+            "set_index",
+            "n_sub",
+            "delta_los",
+            "noise_seed",
+        ):
             assert s.params[key].shape == (n,), key
         assert "c_multiplier" not in s.params
         assert set(s.sources) == {"ident", "z_phot", "pixel_scale"}
@@ -83,7 +93,9 @@ def test_rerender_bit_for_bit(config, train_shard):
     clean = simulate.simulate_images(config, "train", 3, ss, noise=False)
     np.testing.assert_array_equal(clean["params"]["noise_seed"], seeds)
     for i in range(3):
-        np.testing.assert_array_equal(simulate.rerender(train_shard, i, noise=False), clean["images"][i])
+        np.testing.assert_array_equal(
+            simulate.rerender(train_shard, i, noise=False), clean["images"][i]
+        )
     assert not np.array_equal(clean["images"][0], stored[0])
 
 
@@ -100,7 +112,9 @@ def test_images_do_not_depend_on_batch_size(config, train_shard):
 def test_cdm_shards(config, scene, tmp_path):
     with pytest.raises(ValueError, match="multiplier"):
         simulate.simulate_shard(config, scene, 0, tmp_path / "x.h5", progress=False)
-    path = simulate.simulate_shard(config, scene, 0, tmp_path / "s.h5", multiplier=1.0, progress=False)
+    path = simulate.simulate_shard(
+        config, scene, 0, tmp_path / "s.h5", multiplier=1.0, progress=False
+    )
     with shards.open_shard(path) as s:
         assert "gamma_sub" not in s.params and np.all(s.params["c_multiplier"] == 1.0)
         assert s.attrs["subhalo_profile"] == scene and s.attrs["los_profile"] == "nfw"
@@ -136,8 +150,14 @@ def test_seed_streams_are_distinct():
 def _los_draw(scene, n, rng, multiplier=None):
     macro = sample_macro(scene, n, rng, multiplier=multiplier)
     macro["delta_los"] = np.full(n, 2.0)
-    batch = losmod.sample_los_batch(macro["z_lens"], macro["z_source"], macro["theta_e"], macro["gamma_ml"],
-                                    macro["delta_los"], rng)
+    batch = losmod.sample_los_batch(
+        macro["z_lens"],
+        macro["z_source"],
+        macro["theta_e"],
+        macro["gamma_ml"],
+        macro["delta_los"],
+        rng,
+    )
     return macro, batch
 
 
@@ -154,7 +174,9 @@ def test_los_epl_profiles(rng):
     sys = np.repeat(np.arange(40), pop.counts)
     for k in np.flatnonzero(pop.counts)[:3]:
         j = np.flatnonzero(sys == k)[0]
-        expect = cosmology.epl_amp_from_m200(pop.m200[j], pop.gamma[j], pop.z[j], macro["z_source"][k])
+        expect = cosmology.epl_amp_from_m200(
+            pop.m200[j], pop.gamma[j], pop.z[j], macro["z_source"][k]
+        )
         assert pop.amp[j] == pytest.approx(float(expect), rel=1e-12)
     assert np.all(np.abs(pop.e1) <= 0.2) and pop.c200 is None
     with pytest.raises(ValueError, match="gamma_sub"):
@@ -174,5 +196,9 @@ def test_los_nfw_concentrations(rng, apply_to_los):
     sys = np.repeat(np.arange(39), pop.counts)
     j = int(np.flatnonzero(pop.counts > 0)[0])
     i = np.flatnonzero(sys == j)[0]
-    r_s, alpha = cosmology.nfw_params_from_m200_c(pop.m200[i], pop.c200[i], pop.z[i], macro["z_source"][j])
-    assert pop.r_s[i] == pytest.approx(float(r_s), rel=1e-12) and pop.alpha_rs[i] == pytest.approx(float(alpha), rel=1e-12)
+    r_s, alpha = cosmology.nfw_params_from_m200_c(
+        pop.m200[i], pop.c200[i], pop.z[i], macro["z_source"][j]
+    )
+    assert pop.r_s[i] == pytest.approx(float(r_s), rel=1e-12) and pop.alpha_rs[i] == pytest.approx(
+        float(alpha), rel=1e-12
+    )

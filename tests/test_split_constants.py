@@ -14,20 +14,26 @@ from subslope.validation.split_constants import class_rows, constant_classes, ro
 
 
 def _doc():
-    return json.loads((importlib_resources.files("subslope") / "render" / "split_constants.json").read_text())
+    return json.loads(
+        (importlib_resources.files("subslope") / "render" / "split_constants.json").read_text()
+    )
 
 
 def test_file_records_its_provenance_and_matches_the_module():
     doc = _doc()
     prov = doc["provenance"]
-    assert prov["script"] == "benchmarks/split_constants.py" and prov["seeds"] and prov["members"] > 0
+    assert (
+        prov["script"] == "benchmarks/split_constants.py" and prov["seeds"] and prov["members"] > 0
+    )
     assert tuple(doc["rho_ladder"]) == nearfar.RHO_LADDER
     assert tuple(doc["epl_gamma_edges"]) == nearfar.EPL_GAMMA_EDGES
     n_classes = {"epl": len(nearfar.EPL_GAMMA_EDGES) + 1, "nfw": 1, "tnfw": 1}
     for where in ("interior", "edge"):
         for profile, by_order in doc[where].items():
             for order, rows in by_order.items():
-                assert len(rows) == n_classes[profile] and all(len(r) == len(nearfar.RHO_LADDER) for r in rows)
+                assert len(rows) == n_classes[profile] and all(
+                    len(r) == len(nearfar.RHO_LADDER) for r in rows
+                )
                 assert all(v > 0 for r in rows for v in r), (where, profile, order)
 
 
@@ -40,9 +46,15 @@ def test_regenerating_one_row_reproduces_the_file():
     best: dict[int, list[float]] = {}
     for seed in prov["seeds"]:
         for where, profile, row, order, values in class_rows(
-                members=prov["members"], spacing=prov["spacing"], grid=prov["grid"], safety=prov["safety"],
-                seed=seed, rho_ladder=nearfar.RHO_LADDER, gamma_edges=nearfar.EPL_GAMMA_EDGES,
-                only=("edge", index)):
+            members=prov["members"],
+            spacing=prov["spacing"],
+            grid=prov["grid"],
+            safety=prov["safety"],
+            seed=seed,
+            rho_ladder=nearfar.RHO_LADDER,
+            gamma_edges=nearfar.EPL_GAMMA_EDGES,
+            only=("edge", index),
+        ):
             assert (where, profile, row) == ("edge", "nfw", 0)
             best[order] = [max(a, b) for a, b in zip(best.get(order, [0.0] * len(values)), values)]
     assert sorted(best) == [4, 6, 8]

@@ -10,7 +10,13 @@ import pytest
 
 from subslope.io.observations import find_lens_centre
 from subslope.io.ratio_profiles import read_profiles, write_profiles
-from subslope.stages.calibrate import calibrate_stack_size, load_thresholds, safe_threshold, summarize_coverage, threshold_for
+from subslope.stages.calibrate import (
+    calibrate_stack_size,
+    load_thresholds,
+    safe_threshold,
+    summarize_coverage,
+    threshold_for,
+)
 from subslope.stages.cdm_grid import cdm_band, measure_cdm_grid
 from subslope.stages.figures import spearman_trend
 from subslope.stages.plan import derived_seed
@@ -31,20 +37,38 @@ def _toy_profiles(gamma_true, grid, rng):
 def _toy_file(path, n_sets, per_set, grid, rng, **extra):
     gam = np.repeat(rng.uniform(1.6, 2.4, n_sets), per_set)
     sets = np.repeat(np.arange(n_sets), per_set)
-    write_profiles(path, log_ratio=_toy_profiles(gam, grid, rng), gammas=grid, gamma_true=gam,
-                            set_index=sets, theta_e=np.ones(gam.size), lens_x=np.zeros(gam.size),
-                            lens_y=np.zeros(gam.size), attrs={"scene": "toy", **extra})
+    write_profiles(
+        path,
+        log_ratio=_toy_profiles(gam, grid, rng),
+        gammas=grid,
+        gamma_true=gam,
+        set_index=sets,
+        theta_e=np.ones(gam.size),
+        lens_x=np.zeros(gam.size),
+        lens_y=np.zeros(gam.size),
+        attrs={"scene": "toy", **extra},
+    )
     return path
 
 
 def test_profiles_round_trip(tmp_path, rng):
     grid = gamma_grid(1.1, 2.9, 19)
     lr = rng.normal(size=(6, 19))
-    a = write_profiles(tmp_path / "a.h5", log_ratio=lr, gammas=grid, gamma_true=np.linspace(1.2, 2.8, 6),
-                                set_index=[0, 0, 1, 1, 2, 2], c_multiplier=None, theta_e=np.full(6, 1.1),
-                                lens_x=np.zeros(6), lens_y=np.zeros(6), attrs={"scene": "s", "meta": {"k": 1}})
-    b = write_profiles(tmp_path / "b.h5", log_ratio=lr[:2], gammas=grid, set_index=[0, 0],
-                                c_multiplier=[4.0, 4.0])
+    a = write_profiles(
+        tmp_path / "a.h5",
+        log_ratio=lr,
+        gammas=grid,
+        gamma_true=np.linspace(1.2, 2.8, 6),
+        set_index=[0, 0, 1, 1, 2, 2],
+        c_multiplier=None,
+        theta_e=np.full(6, 1.1),
+        lens_x=np.zeros(6),
+        lens_y=np.zeros(6),
+        attrs={"scene": "s", "meta": {"k": 1}},
+    )
+    b = write_profiles(
+        tmp_path / "b.h5", log_ratio=lr[:2], gammas=grid, set_index=[0, 0], c_multiplier=[4.0, 4.0]
+    )
     one = read_profiles(a)
     np.testing.assert_array_equal(one["log_ratio"], lr)
     np.testing.assert_array_equal(one["gammas"], grid)
@@ -52,7 +76,10 @@ def test_profiles_round_trip(tmp_path, rng):
     both = read_profiles([a, b])
     assert both["log_ratio"].shape == (8, 19)
     assert both["set_id"].tolist() == [0, 0, 1, 1, 2, 2, 3, 3]  # set ids distinct across files
-    assert np.all(np.isnan(both["gamma_true"][6:])) and both["c_multiplier"][6:].tolist() == [4.0, 4.0]
+    assert np.all(np.isnan(both["gamma_true"][6:])) and both["c_multiplier"][6:].tolist() == [
+        4.0,
+        4.0,
+    ]
     write_profiles(tmp_path / "c.h5", log_ratio=lr[:, :5], gammas=grid[:5])
     with pytest.raises(ValueError, match="grid"):
         read_profiles([a, tmp_path / "c.h5"])
@@ -77,18 +104,28 @@ def test_calibrate_per_n_gaussian_toy(tmp_path):
         npzs.append(tmp_path / f"N{n}.npz")
     assert np.load(tmp_path / "N13.npz")["t_true"].size == 300  # one disjoint stack of 13 per set
     assert np.load(tmp_path / "N2.npz")["t_true"].size == 300 * 6
-    table, thr = summarize_coverage(npzs, tmp_path / "cal.csv", tmp_path / "thr.json",
-                                             tmp_path / "coverage", run_name="toy")
+    table, thr = summarize_coverage(
+        npzs, tmp_path / "cal.csv", tmp_path / "thr.json", tmp_path / "coverage", run_name="toy"
+    )
     assert table["n_images"].tolist() == [1, 2, 13]
-    assert (tmp_path / "coverage.png").stat().st_size > 10_000 and (tmp_path / "coverage.pdf").exists()
+    assert (tmp_path / "coverage.png").stat().st_size > 10_000 and (
+        tmp_path / "coverage.pdf"
+    ).exists()
     loaded = load_thresholds(tmp_path / "thr.json")
-    assert set(loaded["tau"]) == {1, 2, 13} and loaded["tau"][13] == pytest.approx(table["tau"].iloc[2])
+    assert set(loaded["tau"]) == {1, 2, 13} and loaded["tau"][13] == pytest.approx(
+        table["tau"].iloc[2]
+    )
     assert threshold_for(loaded, 13) == (loaded["tau"][13], 13)
     assert threshold_for(loaded, 5) == (loaded["tau"][2], 2)  # not calibrated: largest N below
     # an over-confident estimator (ln r doubled): the empirical threshold still covers 68%
     data = read_profiles(sets)
-    write_profiles(tmp_path / "over.h5", log_ratio=2 * data["log_ratio"], gammas=grid,
-                            gamma_true=data["gamma_true"], set_index=data["set_index"])
+    write_profiles(
+        tmp_path / "over.h5",
+        log_ratio=2 * data["log_ratio"],
+        gammas=grid,
+        gamma_true=data["gamma_true"],
+        set_index=data["set_index"],
+    )
     over = calibrate_stack_size([tmp_path / "over.h5"], 2, tmp_path / "over.npz", seed=3)
     assert abs(over["coverage"] - 0.68) < 3 * over["coverage_err"] + 0.02
     assert over["coverage_wilks"] < 0.6
@@ -109,18 +146,28 @@ def test_cdm_grid_and_set_stacks(tmp_path, rng):
             centre = 1.6 + 0.1 * np.log2(a) + shift
             gam = np.full(26, centre)
             lr = _toy_profiles(gam, grid, rng)
-            path = write_profiles(tmp_path / f"{scene}_{a}.h5", log_ratio=lr, gammas=grid,
-                                           set_index=np.repeat(np.arange(2), 13), c_multiplier=np.full(26, a))
+            path = write_profiles(
+                tmp_path / f"{scene}_{a}.h5",
+                log_ratio=lr,
+                gammas=grid,
+                set_index=np.repeat(np.arange(2), 13),
+                c_multiplier=np.full(26, a),
+            )
             files[(scene, a)] = [path]
-    table = measure_cdm_grid(files, tmp_path / "g.npz", tmp_path / "g.csv", tmp_path / "fig4",
-                                      run_name="toy")
+    table = measure_cdm_grid(
+        files, tmp_path / "g.npz", tmp_path / "g.csv", tmp_path / "fig4", run_name="toy"
+    )
     assert len(table) == 4 and set(table["n_sets"]) == {2} and set(table["n_images"]) == {13}
     med = table.set_index(["scene", "multiplier"])["median"]
-    assert med[("nfw", 1.0)] == pytest.approx(1.6, abs=0.1) and med[("tnfw", 4.0)] == pytest.approx(2.0, abs=0.1)
+    assert med[("nfw", 1.0)] == pytest.approx(1.6, abs=0.1) and med[("tnfw", 4.0)] == pytest.approx(
+        2.0, abs=0.1
+    )
     assert np.load(tmp_path / "g.npz")["mles_tnfw"].shape == (2, 2)
     band = cdm_band(pd.read_csv(tmp_path / "g.csv"), "tnfw", 1.0)
     assert band[1] <= band[0] <= band[2]
-    assert (tmp_path / "fig4.png").exists() and b"run_name=toy" in (tmp_path / "fig4.pdf").read_bytes()
+    assert (tmp_path / "fig4.png").exists() and b"run_name=toy" in (
+        tmp_path / "fig4.pdf"
+    ).read_bytes()
 
 
 @pytest.fixture(scope="module")
@@ -167,28 +214,94 @@ def test_spearman_trend():
 
 
 def test_summary_sections(tmp_path):
-    hst = pd.DataFrame([
-        {"system": "SDSSJ0946+1006", "n_images": 1, "threshold_n": 1, "mle": 2.3, "lower": 1.9, "upper": 2.9,
-         "threshold": 1.1, "lower_at_edge": False, "upper_at_edge": True, "multimodal": False},
-        {"system": "combined", "n_images": 13, "threshold_n": 13, "mle": 2.51, "lower": 2.47, "upper": 2.56,
-         "threshold": 1.2, "lower_at_edge": False, "upper_at_edge": False, "multimodal": False},
-    ])
+    hst = pd.DataFrame(
+        [
+            {
+                "system": "SDSSJ0946+1006",
+                "n_images": 1,
+                "threshold_n": 1,
+                "mle": 2.3,
+                "lower": 1.9,
+                "upper": 2.9,
+                "threshold": 1.1,
+                "lower_at_edge": False,
+                "upper_at_edge": True,
+                "multimodal": False,
+            },
+            {
+                "system": "combined",
+                "n_images": 13,
+                "threshold_n": 13,
+                "mle": 2.51,
+                "lower": 2.47,
+                "upper": 2.56,
+                "threshold": 1.2,
+                "lower_at_edge": False,
+                "upper_at_edge": False,
+                "multimodal": False,
+            },
+        ]
+    )
     hst.to_csv(tmp_path / "intervals.csv", index=False)
-    pd.DataFrame([
-        {"scene": "nfw", "multiplier": 1.0, "n_sets": 15, "n_images": 13, "median": 1.9, "lo": 1.8, "hi": 2.0},
-        {"scene": "tnfw", "multiplier": 1.0, "n_sets": 15, "n_images": 13, "median": 2.1, "lo": 2.0, "hi": 2.2},
-        {"scene": "nfw", "multiplier": 4.0, "n_sets": 15, "n_images": 13, "median": 2.2, "lo": 2.1, "hi": 2.3},
-    ]).to_csv(tmp_path / "cdm.csv", index=False)
-    pd.DataFrame([{"n_images": n, "n_stacks": 100, "tau": 1.0, "tau_exact": True, "coverage": 0.7,
-                   "coverage_err": 0.05, "coverage_wilks": 0.6, "n_heldout": 50} for n in (1, 13)]
-                 ).to_csv(tmp_path / "cal.csv", index=False)
+    pd.DataFrame(
+        [
+            {
+                "scene": "nfw",
+                "multiplier": 1.0,
+                "n_sets": 15,
+                "n_images": 13,
+                "median": 1.9,
+                "lo": 1.8,
+                "hi": 2.0,
+            },
+            {
+                "scene": "tnfw",
+                "multiplier": 1.0,
+                "n_sets": 15,
+                "n_images": 13,
+                "median": 2.1,
+                "lo": 2.0,
+                "hi": 2.2,
+            },
+            {
+                "scene": "nfw",
+                "multiplier": 4.0,
+                "n_sets": 15,
+                "n_images": 13,
+                "median": 2.2,
+                "lo": 2.1,
+                "hi": 2.3,
+            },
+        ]
+    ).to_csv(tmp_path / "cdm.csv", index=False)
+    pd.DataFrame(
+        [
+            {
+                "n_images": n,
+                "n_stacks": 100,
+                "tau": 1.0,
+                "tau_exact": True,
+                "coverage": 0.7,
+                "coverage_err": 0.05,
+                "coverage_wilks": 0.6,
+                "n_heldout": 50,
+            }
+            for n in (1, 13)
+        ]
+    ).to_csv(tmp_path / "cal.csv", index=False)
     bench = tmp_path / "b.tsv"
     bench.write_text("s\th:m:s\tmax_rss\tmax_vms\n12.5\t0:00:12\t321.0\t900\n")
-    out = write_summary(tmp_path / "out" / "summary.md", run_name="toy", config_hash="abc123",
-                                 config_file="config/x.yaml", hst_csv=tmp_path / "intervals.csv",
-                                 cdm_csv=tmp_path / "cdm.csv", calibration_csv=tmp_path / "cal.csv",
-                                 trend={"rho": 0.8, "p_value": 1e-5, "n": 20},
-                                 benchmarks={"training": [bench], "hst": [tmp_path / "missing.tsv"]})
+    out = write_summary(
+        tmp_path / "out" / "summary.md",
+        run_name="toy",
+        config_hash="abc123",
+        config_file="config/x.yaml",
+        hst_csv=tmp_path / "intervals.csv",
+        cdm_csv=tmp_path / "cdm.csv",
+        calibration_csv=tmp_path / "cal.csv",
+        trend={"rho": 0.8, "p_value": 1e-5, "n": 20},
+        benchmarks={"training": [bench], "hst": [tmp_path / "missing.tsv"]},
+    )
     text = out.read_text()
     for section in SUMMARY_SECTIONS:
         assert f"## {section}" in text, section
@@ -206,7 +319,10 @@ def test_summary_sections(tmp_path):
     empty = write_summary(tmp_path / "e" / "summary.md", run_name="toy", config_hash="h")
     text = empty.read_text()
     assert "Stage `hst` not run" in text and "Stage `calibrate` not run" in text
-    assert list(pd.read_csv(tmp_path / "e" / "hst_result.csv").columns)[:2] == ["n_images", "gamma_mle"]
+    assert list(pd.read_csv(tmp_path / "e" / "hst_result.csv").columns)[:2] == [
+        "n_images",
+        "gamma_mle",
+    ]
 
 
 def test_training_section_and_checkpoint_key():
@@ -218,7 +334,9 @@ def test_training_section_and_checkpoint_key():
     assert tr["seed"] == derived_seed(5, "training") and tr["progress"] is False
     assert "device" not in tr and "gpus" not in tr and tr["pixel_scale"] == 0.04
     key = checkpoint_key(tr, ["a.h5"], ["v.h5"], {"train": "x"})
-    assert key == checkpoint_key({**tr, "max_epochs": 9}, ["a.h5"], ["v.h5"], {"train": "x"})  # resume-safe
+    assert key == checkpoint_key(
+        {**tr, "max_epochs": 9}, ["a.h5"], ["v.h5"], {"train": "x"}
+    )  # resume-safe
     assert key != checkpoint_key({**tr, "lr": 0.1}, ["a.h5"], ["v.h5"], {"train": "x"})
     assert key != checkpoint_key(tr, ["a.h5", "b.h5"], ["v.h5"], {"train": "x"})
     assert json.dumps(tr)  # JSON-able (Snakemake params)
@@ -228,9 +346,34 @@ def test_cli_has_campaign_commands(capsys):
     from subslope.cli import build_parser
 
     parser = build_parser()
-    args = parser.parse_args(["train", "--config", "c.yaml", "--train", "a.h5", "b.h5", "--val", "v.h5",
-                              "--whitening", "w.json", "--out", "o"])
+    args = parser.parse_args(
+        [
+            "train",
+            "--config",
+            "c.yaml",
+            "--train",
+            "a.h5",
+            "b.h5",
+            "--val",
+            "v.h5",
+            "--whitening",
+            "w.json",
+            "--out",
+            "o",
+        ]
+    )
     assert args.train == ["a.h5", "b.h5"] and args.ckpt is None
-    args = parser.parse_args(["analyze-hst", "--config", "c.yaml", "--model", "m.pt", "--thresholds", "t.json",
-                              "--out", "o"])
+    args = parser.parse_args(
+        [
+            "analyze-hst",
+            "--config",
+            "c.yaml",
+            "--model",
+            "m.pt",
+            "--thresholds",
+            "t.json",
+            "--out",
+            "o",
+        ]
+    )
     assert args.cdm is None and args.hst is None

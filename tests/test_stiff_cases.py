@@ -1,4 +1,5 @@
-"""Stiff cases of docs/simulation.md (subslope.validation.stiff): fast checks and a lenstronomy cross-check."""
+"""Stiff cases of docs/simulation.md (subslope.validation.stiff): fast checks and a lenstronomy
+cross-check."""
 
 from __future__ import annotations
 
@@ -8,15 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from subslope.validation import stiff as D
-from subslope.validation.lenstronomy import lenstronomy_model
+from subslope.physics.instrument import gaussian_psf
 from subslope.render import pipeline as R
 from subslope.render import populations
-from subslope.physics.instrument import gaussian_psf
+from subslope.validation import stiff as D
+from subslope.validation.lenstronomy import lenstronomy_model
 
 PSF = gaussian_psf(0.1, 0.04)
-COARSE = R.RenderSettings(npix=40, pixel_scale=0.1, device="cpu", dtype=torch.float64, compile="off",
-                          chunk_members=64)
+COARSE = R.RenderSettings(
+    npix=40, pixel_scale=0.1, device="cpu", dtype=torch.float64, compile="off", chunk_members=64
+)
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -44,7 +46,15 @@ def test_stiff_case_numbers_finite_and_sheet_cancels_mean(monkeypatch, supersamp
     cases = res["cases"]
     assert [c.gamma for c in cases] == [None, 2.5, 2.5, 1.2, 1.2]
     for c in cases:
-        vals = [c.arc_ratio, c.centre_flux, c.total_ratio, c.kappa_mean, c.kappa_min, c.kappa_max, c.kappa_sheet]
+        vals = [
+            c.arc_ratio,
+            c.centre_flux,
+            c.total_ratio,
+            c.kappa_mean,
+            c.kappa_min,
+            c.kappa_max,
+            c.kappa_sheet,
+        ]
         assert np.all(np.isfinite(vals)), c
     for img in res["images"].values():
         assert np.all(np.isfinite(img)) and img.shape == (40, 40)
@@ -65,7 +75,9 @@ def test_stiff_case_numbers_finite_and_sheet_cancels_mean(monkeypatch, supersamp
 
 
 def test_sheet_off_is_a_local_diagnostic():
-    res = D.stiff_cases(PSF, seed=3, n_sub=20, gammas=(1.2,), settings=dataclasses.replace(COARSE, pixel_scale=0.1))
+    res = D.stiff_cases(
+        PSF, seed=3, n_sub=20, gammas=(1.2,), settings=dataclasses.replace(COARSE, pixel_scale=0.1)
+    )
     on, off = (res["images"][c.label] for c in res["cases"][1:])
     assert not np.allclose(on, off)
     assert R.population_pass is populations.population_pass  # restored
@@ -73,12 +85,20 @@ def test_sheet_off_is_a_local_diagnostic():
 
 @pytest.mark.reference
 def test_gamma_1p2_against_lenstronomy():
-    s = R.RenderSettings(device="cpu", dtype=torch.float64, compile="off", n_terms=30, n_terms_main=30,
-                         chunk_members=64)
+    s = R.RenderSettings(
+        device="cpu",
+        dtype=torch.float64,
+        compile="off",
+        n_terms=30,
+        n_terms_main=30,
+        chunk_members=64,
+    )
     res = D.stiff_cases(PSF, seed=6, n_sub=50, gammas=(1.2,), sheets=(True, False), settings=s)
     for c in res["cases"][1:]:
         m = dict(res["macro"], gamma_sub=np.array([1.2]))
-        ref = lenstronomy_model(m, PSF, 0, subhalos=res["subhalos"][1.2], sheets=c.sheet, epl="EPL").image()
+        ref = lenstronomy_model(
+            m, PSF, 0, subhalos=res["subhalos"][1.2], sheets=c.sheet, epl="EPL"
+        ).image()
         rel = np.linalg.norm(res["images"][c.label] - ref) / np.linalg.norm(ref)
         print(f"{c.label}: relative L2 vs lenstronomy {rel:.1e}")
         assert rel <= 1e-3

@@ -1,4 +1,5 @@
-"""Tests of subslope.simulation.subhalos: mass function, slopes, placement, lens-parameter conversion."""
+"""Tests of subslope.simulation.subhalos: mass function, slopes, placement, lens-parameter
+conversion."""
 
 from __future__ import annotations
 
@@ -62,7 +63,9 @@ def test_subhalo_gammas_truncation_and_mean(rng):
     assert g.min() >= 1.01 and g.max() <= 2.99
     for b, mu in enumerate(gsys):
         part = g[40_000 * b : 40_000 * (b + 1)]
-        ref = stats.truncnorm((1.01 - mu) / (0.1 * mu), (2.99 - mu) / (0.1 * mu), loc=mu, scale=0.1 * mu)
+        ref = stats.truncnorm(
+            (1.01 - mu) / (0.1 * mu), (2.99 - mu) / (0.1 * mu), loc=mu, scale=0.1 * mu
+        )
         assert abs(part.mean() - ref.mean()) < 5 * ref.std() / np.sqrt(part.size)
         assert stats.kstest(part, ref.cdf).pvalue > 1e-3
     # At γ = 2.9 the truncation pulls the mean well below 2.9; at 2.0 it barely matters.
@@ -147,7 +150,10 @@ def test_epl_amplitude_uses_each_systems_redshifts():
     gamma = np.array([1.2, 2.5, 1.8, 2.0, 2.9])
     zl, zs = np.array([0.16, 0.24]), np.array([0.55, 0.69])
     amp = sh.epl_amplitudes(mass, gamma, counts, zl, zs)
-    direct = [epl_amp_from_m200(m, g, zl[b], zs[b]) for m, g, b in zip(mass, gamma, sh.system_index(counts))]
+    direct = [
+        epl_amp_from_m200(m, g, zl[b], zs[b])
+        for m, g, b in zip(mass, gamma, sh.system_index(counts))
+    ]
     np.testing.assert_allclose(amp, direct, rtol=1e-12)
 
 
@@ -160,7 +166,9 @@ def test_nfw_parameters_follow_concentration_relation(rng):
     zl, zs = np.array([0.2, 0.22, 0.18]), np.array([0.6, 0.6, 0.65])
     r_sub = np.array([0.5, 1.0, 1.5, 0.0, 2.0])
     sys = sh.system_index(counts)
-    out = sh.nfw_parameters(mass, counts, zl, zs, rng, multiplier=[2.0, 1.0, 0.5], scatter_dex=0.0, r_sub=r_sub)
+    out = sh.nfw_parameters(
+        mass, counts, zl, zs, rng, multiplier=[2.0, 1.0, 0.5], scatter_dex=0.0, r_sub=r_sub
+    )
     mult = np.array([2.0, 0.5])[[0, 0, 0, 1, 1]]
     np.testing.assert_allclose(out["c200"], mult * dutton_maccio_c200(mass, zl[sys]), rtol=1e-12)
     for n in range(5):
@@ -168,7 +176,9 @@ def test_nfw_parameters_follow_concentration_relation(rng):
         assert out["r_s"][n] == pytest.approx(r_s, rel=1e-12)
         assert out["alpha_rs"][n] == pytest.approx(a_rs, rel=1e-12)
         r = max(r_sub[n], sh.R_SUB_FLOOR)
-        assert out["r_t"][n] == pytest.approx(truncation_radius_arcsec(mass[n], r, zl[sys[n]]), rel=1e-12)
+        assert out["r_t"][n] == pytest.approx(
+            truncation_radius_arcsec(mass[n], r, zl[sys[n]]), rel=1e-12
+        )
     # 0.1 dex scatter around the median.
     big = np.full(20_000, 1e8)
     c = sh.nfw_parameters(big, np.array([20_000]), 0.2, 0.6, rng, 1.0, 0.1)["c200"]
@@ -179,7 +189,12 @@ def test_nfw_parameters_follow_concentration_relation(rng):
 def test_sample_subhalos_epl_scene(rng):
     scene = scenes_from_config({})["test_epl"]
     macro = sample_macro(scene, 26, rng)
-    imgs = np.stack([ring_image(t, cx=x, cy=y) for t, x, y in zip(macro["theta_e"], macro["lens_x"], macro["lens_y"])])
+    imgs = np.stack(
+        [
+            ring_image(t, cx=x, cy=y)
+            for t, x, y in zip(macro["theta_e"], macro["lens_x"], macro["lens_y"])
+        ]
+    )
     pop = sh.sample_subhalos(scene, macro, np.random.default_rng(3), imgs)
     again = sh.sample_subhalos(scene, macro, np.random.default_rng(3), imgs)
     n = int(macro["n_sub"].sum())

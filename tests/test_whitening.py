@@ -15,9 +15,15 @@ def _shard(path, images):
     n = images.shape[0]
     params = {k: np.zeros(n) for k in ("theta_e", "lens_x", "lens_y")}
     params.update(set_index=np.arange(n), noise_seed=np.arange(n, dtype=np.uint64))
-    return shards.write_shard(path, images=images, params=params, psf=np.ones((1, 1)),
-                              subhalos={"counts": np.zeros(n, np.int64)}, los={"counts": np.zeros(n, np.int64)},
-                              attrs={"scene": "train"})
+    return shards.write_shard(
+        path,
+        images=images,
+        params=params,
+        psf=np.ones((1, 1)),
+        subhalos={"counts": np.zeros(n, np.int64)},
+        los={"counts": np.zeros(n, np.int64)},
+        attrs={"scene": "train"},
+    )
 
 
 def test_matches_numpy_on_concatenation(tmp_path):
@@ -34,7 +40,9 @@ def test_matches_numpy_on_concatenation(tmp_path):
     res = whitening.compute_whitening(paths, out)
     on_disk = json.loads(out.read_text())
     assert on_disk == json.loads(json.dumps(res))
-    assert on_disk["n_images"] == 15 and [s["path"] for s in on_disk["shards"]] == [str(p) for p in paths]
+    assert on_disk["n_images"] == 15 and [s["path"] for s in on_disk["shards"]] == [
+        str(p) for p in paths
+    ]
     assert on_disk["shards"][0]["sha256"] == shards.file_sha256(paths[0])
     assert on_disk["shards"][0]["bytes"] == paths[0].stat().st_size
     assert whitening.load_whitening(out) == (res["mean"], res["std"])
@@ -45,7 +53,9 @@ def test_merge_is_exact_for_disjoint_parts():
     a, b = rng.normal(3, 2, 1000), rng.normal(-1, 0.5, 17)
     m = whitening.Moments.of(a).merge(whitening.Moments.of(b))
     both = np.concatenate([a, b])
-    assert m.mean == pytest.approx(both.mean(), rel=1e-14) and m.var == pytest.approx(both.var(), rel=1e-12)
+    assert m.mean == pytest.approx(both.mean(), rel=1e-14) and m.var == pytest.approx(
+        both.var(), rel=1e-12
+    )
     assert whitening.Moments().merge(m) == m and m.merge(whitening.Moments()) == m
 
 

@@ -32,7 +32,9 @@ def workdir(tmp_path_factory) -> Path:
         pytest.skip(f"snakemake not found next to {sys.executable}")
     root = tmp_path_factory.mktemp("workflow")
     shutil.copy(REPO / "Snakefile", root)
-    shutil.copytree(REPO / "workflow", root / "workflow", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(
+        REPO / "workflow", root / "workflow", ignore=shutil.ignore_patterns("__pycache__")
+    )
     shutil.copytree(REPO / "config", root / "config")
     return root
 
@@ -62,13 +64,28 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
     stats = _job_stats(proc.stdout)
     sim = cfg["simulation"]["scenes"]
     n_mult = len(cfg["simulation"]["multipliers"])
-    assert stats["simulate_shard"] == sum(sim[s]["n_shards"] for s in ("train", "validation", "test_epl"))
-    assert stats["simulate_cdm_shard"] == n_mult * (sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"])
+    assert stats["simulate_shard"] == sum(
+        sim[s]["n_shards"] for s in ("train", "validation", "test_epl")
+    )
+    assert stats["simulate_cdm_shard"] == n_mult * (
+        sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"]
+    )
     assert stats["evaluate_profiles"] == sim["validation"]["n_shards"] + sim["test_epl"]["n_shards"]
     assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
     assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
-    for rule in ("fetch_data", "plot_hst_gallery", "compute_whitening", "train_estimator", "plot_training_curves",
-                 "summarize_coverage", "measure_cdm_grid", "analyze_hst", "plot_validation", "write_summary", "all"):
+    for rule in (
+        "fetch_data",
+        "plot_hst_gallery",
+        "compute_whitening",
+        "train_estimator",
+        "plot_training_curves",
+        "summarize_coverage",
+        "measure_cdm_grid",
+        "analyze_hst",
+        "plot_validation",
+        "write_summary",
+        "all",
+    ):
         assert stats[rule] == 1, (rule, stats)
     assert stats["plot_scene_examples"] == 5
     assert "results/evaluate_profiles/nfw/a0.5/shard_0.h5" in proc.stdout
@@ -92,7 +109,17 @@ def test_bad_config_stops_before_any_job(workdir, data_dir):
     assert not (workdir / "resources").exists() and not (workdir / "results").exists()
 
 
-STAGES = ("gallery", "simulate", "train", "evaluate", "calibrate", "cdm_grid", "hst", "figures", "summary")
+STAGES = (
+    "gallery",
+    "simulate",
+    "train",
+    "evaluate",
+    "calibrate",
+    "cdm_grid",
+    "hst",
+    "figures",
+    "summary",
+)
 
 
 def _stages(workdir: Path, gallery: bool, simulate: bool, **more: bool) -> str:
@@ -108,7 +135,9 @@ def _stages(workdir: Path, gallery: bool, simulate: bool, **more: bool) -> str:
 @pytest.mark.slow
 def test_real_run_fetch_and_gallery(workdir, data_dir):
     gallery_only = ("--configfile", _stages(workdir, True, False))
-    proc = snakemake(workdir, "--cores", "2", *gallery_only, "--config", "run_name=pytest_run", mirror=data_dir)
+    proc = snakemake(
+        workdir, "--cores", "2", *gallery_only, "--config", "run_name=pytest_run", mirror=data_dir
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     png = workdir / "results" / "figures" / "hst_gallery.png"
     pdf = workdir / "results" / "figures" / "hst_gallery.pdf"
@@ -123,7 +152,14 @@ def test_real_run_fetch_and_gallery(workdir, data_dir):
     assert "loaded 13 cutouts" in log and "SDSSJ0946+1006" in log
     assert (workdir / "logs" / "fetch_data.log").read_text().count("copying from mirror") == 18
     # Up to date afterwards, even with the mirror moved: data are known by checksum.
-    proc = snakemake(workdir, "-n", *gallery_only, "--config", "run_name=pytest_run", mirror=workdir / "elsewhere")
+    proc = snakemake(
+        workdir,
+        "-n",
+        *gallery_only,
+        "--config",
+        "run_name=pytest_run",
+        mirror=workdir / "elsewhere",
+    )
     assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout + proc.stderr
 
 
@@ -149,8 +185,18 @@ def _job_stats(output: str) -> dict[str, int]:
 
 
 def _sim_only(workdir: Path) -> str:
-    return _stages(workdir, False, True, train=False, evaluate=False, calibrate=False, cdm_grid=False,
-                   hst=False, figures=False, summary=False)
+    return _stages(
+        workdir,
+        False,
+        True,
+        train=False,
+        evaluate=False,
+        calibrate=False,
+        cdm_grid=False,
+        hst=False,
+        figures=False,
+        summary=False,
+    )
 
 
 def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
@@ -162,13 +208,25 @@ def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
     sim = cfgmod.load(workdir / "config" / "config.yaml", env=False)["simulation"]
     n_mult = len(sim["multipliers"])
     # one job per shard of the EPL scenes; per shard and multiplier of the CDM scenes
-    assert stats["simulate_shard"] == sum(sim["scenes"][s]["n_shards"] for s in ("train", "validation", "test_epl"))
-    assert stats["simulate_cdm_shard"] == n_mult * (sim["scenes"]["nfw"]["n_shards"] + sim["scenes"]["tnfw"]["n_shards"])
+    assert stats["simulate_shard"] == sum(
+        sim["scenes"][s]["n_shards"] for s in ("train", "validation", "test_epl")
+    )
+    assert stats["simulate_cdm_shard"] == n_mult * (
+        sim["scenes"]["nfw"]["n_shards"] + sim["scenes"]["tnfw"]["n_shards"]
+    )
     assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 5, stats
     assert "train_estimator" not in stats and "evaluate_profiles" not in stats
     last_train = sim["scenes"]["train"]["n_shards"] - 1
-    for path in ("train/shard_0.h5", f"train/shard_{last_train}.h5", "validation/shard_0.h5", "test_epl/shard_1.h5",
-                 "nfw/a0.5/shard_0.h5", "nfw/a1/shard_0.h5", "nfw/a4/shard_0.h5", "tnfw/a4/shard_0.h5"):
+    for path in (
+        "train/shard_0.h5",
+        f"train/shard_{last_train}.h5",
+        "validation/shard_0.h5",
+        "test_epl/shard_1.h5",
+        "nfw/a0.5/shard_0.h5",
+        "nfw/a1/shard_0.h5",
+        "nfw/a4/shard_0.h5",
+        "tnfw/a4/shard_0.h5",
+    ):
         assert f"results/simulate_shard/{path}" in proc.stdout, path
 
 
@@ -188,20 +246,37 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
     proc = snakemake(workdir, "-n", "--configfile", "config/tiny.yaml", mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     stats = _job_stats(proc.stdout)
-    expected = {"simulate_shard": 4, "simulate_cdm_shard": 2,
-                "compute_whitening": 1, "plot_scene_examples": 5, "train_estimator": 1, "plot_training_curves": 1,
-                "evaluate_profiles": 2, "evaluate_cdm_profiles": 2, "calibrate_threshold": 2,
-                "summarize_coverage": 1, "measure_cdm_grid": 1, "analyze_hst": 1, "plot_validation": 1,
-                "write_summary": 1, "all": 1}
+    expected = {
+        "simulate_shard": 4,
+        "simulate_cdm_shard": 2,
+        "compute_whitening": 1,
+        "plot_scene_examples": 5,
+        "train_estimator": 1,
+        "plot_training_curves": 1,
+        "evaluate_profiles": 2,
+        "evaluate_cdm_profiles": 2,
+        "calibrate_threshold": 2,
+        "summarize_coverage": 1,
+        "measure_cdm_grid": 1,
+        "analyze_hst": 1,
+        "plot_validation": 1,
+        "write_summary": 1,
+        "all": 1,
+    }
     # fetch_data and the gallery may already have run in this work folder
-    assert {k: v for k, v in stats.items() if k not in ("fetch_data", "plot_hst_gallery")} == expected, stats
+    assert {
+        k: v for k, v in stats.items() if k not in ("fetch_data", "plot_hst_gallery")
+    } == expected, stats
 
 
 @pytest.mark.parametrize("off", ["train", "calibrate", "cdm_grid"])
 def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
     """A stage switched off runs none of its rules, nor do the stages that need it."""
-    needs = {"train": {"evaluate", "calibrate", "cdm_grid", "hst", "figures", "summary"},
-             "evaluate": {"calibrate", "cdm_grid", "hst"}, "calibrate": {"hst"}}
+    needs = {
+        "train": {"evaluate", "calibrate", "cdm_grid", "hst", "figures", "summary"},
+        "evaluate": {"calibrate", "cdm_grid", "hst"},
+        "calibrate": {"hst"},
+    }
     flags = workdir / "config" / f"tiny_no_{off}.yaml"
     flags.write_text(f"stages:\n  {off}: false\n")
     proc = snakemake(workdir, "-n", "--configfile", "config/tiny.yaml", str(flags), mirror=data_dir)
@@ -223,8 +298,16 @@ def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
 # the real tiny campaign, run once
 TINY = ("--configfile", "config/tiny.yaml")
 
-FIGURES = ("hst_gallery", "training_curves", "coverage", "fig2_validation", "fig3_stacks",
-           "fig4_concentration_grid", "fig5_hst_profiles", "fig6_hst_combined")
+FIGURES = (
+    "hst_gallery",
+    "training_curves",
+    "coverage",
+    "fig2_validation",
+    "fig3_stacks",
+    "fig4_concentration_grid",
+    "fig5_hst_profiles",
+    "fig6_hst_combined",
+)
 
 
 @pytest.fixture(scope="module")
@@ -248,22 +331,31 @@ def test_real_run_tiny_simulation(tiny_run, workdir):
     results = tiny_run
     paths = sorted((results / "simulate_shard").rglob("*.h5"))
     rel = sorted(str(p.relative_to(results / "simulate_shard")) for p in paths)
-    assert rel == ["nfw/a1/shard_0.h5", "test_epl/shard_0.h5", "tnfw/a1/shard_0.h5", "train/shard_0.h5",
-                   "train/shard_1.h5", "validation/shard_0.h5"]
+    assert rel == [
+        "nfw/a1/shard_0.h5",
+        "test_epl/shard_0.h5",
+        "tnfw/a1/shard_0.h5",
+        "train/shard_0.h5",
+        "train/shard_1.h5",
+        "validation/shard_0.h5",
+    ]
     for p in paths:
         with shards.open_shard(p) as s:
             assert len(s) in (3, 4, 8) and np.all(np.isfinite(s.images[()]))
     # the workflow's shard equals the package's (same config, same seed streams)
     with shards.open_shard(results / "simulate_shard" / "train" / "shard_1.h5") as s:
-        np.testing.assert_array_equal(simulate.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"),
-                                      s.images[2])
+        np.testing.assert_array_equal(
+            simulate.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"), s.images[2]
+        )
     white = json.loads((results / "compute_whitening" / "whitening.json").read_text())
     assert white["n_images"] == 6 and white["std"] > 0 and len(white["shards"]) == 2
     for scene in ("train", "validation", "test_epl", "nfw", "tnfw"):
         png = results / "figures" / f"scene_examples_{scene}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", scene
     assert "plotted images" in (workdir / "logs" / "plot_scene_examples" / "train.log").read_text()
-    assert "per image" in (workdir / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
+    assert (
+        "per image" in (workdir / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
+    )
 
 
 @pytest.mark.slow
@@ -271,8 +363,8 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
     import h5py
     import pandas as pd
 
-    from subslope.stages.summary import SUMMARY_SECTIONS
     from subslope.nre import load_estimator
+    from subslope.stages.summary import SUMMARY_SECTIONS
 
     results = tiny_run
     for stem in FIGURES:
@@ -280,7 +372,9 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", stem
         assert pdf.read_bytes()[:5] == b"%PDF-", stem
         if stem != "hst_gallery":
-            assert b"run_name=tiny" in pdf.read_bytes() and b"run_name=tiny" in png.read_bytes(), stem
+            assert b"run_name=tiny" in pdf.read_bytes() and b"run_name=tiny" in png.read_bytes(), (
+                stem
+            )
     model, meta = load_estimator(results / "train_estimator" / "model.pt")
     assert meta["whitening"]["std"] > 0
     assert len(pd.read_csv(results / "train_estimator" / "training_log.csv")) >= 1
@@ -300,7 +394,9 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
     assert set(grid["scene"]) == {"nfw", "tnfw"} and set(grid["multiplier"]) == {1.0}
     hst = pd.read_csv(results / "analyze_hst" / "intervals.csv")
     assert len(hst) == 14 and hst["system"].iloc[-1] == "combined" and hst["n_images"].iloc[-1] == 2
-    assert np.all(np.abs(hst["lens_x"].iloc[:13]) < 0.4) and np.all(np.abs(hst["lens_y"].iloc[:13]) < 0.4)
+    assert np.all(np.abs(hst["lens_x"].iloc[:13]) < 0.4) and np.all(
+        np.abs(hst["lens_y"].iloc[:13]) < 0.4
+    )
     summary = (results / "summary.md").read_text()
     for section in SUMMARY_SECTIONS:
         assert f"## {section}" in summary, section
@@ -324,14 +420,29 @@ def test_real_run_tiny_reruns(tiny_run, workdir, data_dir):
     # -R calibrate_threshold: calibration and what depends on it, nothing upstream
     proc = snakemake(workdir, "-n", *TINY, "-R", "calibrate_threshold", mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
-    assert _job_stats(proc.stdout) == {"calibrate_threshold": 2, "summarize_coverage": 1, "analyze_hst": 1,
-                                       "plot_validation": 1, "write_summary": 1, "all": 1}
+    assert _job_stats(proc.stdout) == {
+        "calibrate_threshold": 2,
+        "summarize_coverage": 1,
+        "analyze_hst": 1,
+        "plot_validation": 1,
+        "write_summary": 1,
+        "all": 1,
+    }
     # appending a multiplier simulates and evaluates only the new one
     more = workdir / "config" / "tiny_more.yaml"
-    more.write_text((workdir / "config" / "tiny.yaml").read_text().replace("multipliers: [1.0]",
-                                                                           "multipliers: [1.0, 2.0]"))
+    more.write_text(
+        (workdir / "config" / "tiny.yaml")
+        .read_text()
+        .replace("multipliers: [1.0]", "multipliers: [1.0, 2.0]")
+    )
     proc = snakemake(workdir, "-n", "--configfile", str(more), mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
-    assert _job_stats(proc.stdout) == {"simulate_cdm_shard": 2, "evaluate_cdm_profiles": 2, "measure_cdm_grid": 1,
-                                       "analyze_hst": 1, "write_summary": 1, "all": 1}
+    assert _job_stats(proc.stdout) == {
+        "simulate_cdm_shard": 2,
+        "evaluate_cdm_profiles": 2,
+        "measure_cdm_grid": 1,
+        "analyze_hst": 1,
+        "write_summary": 1,
+        "all": 1,
+    }
     assert "results/simulate_shard/nfw/a2/shard_0.h5" in proc.stdout

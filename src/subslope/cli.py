@@ -82,8 +82,15 @@ def _simulate(args: argparse.Namespace) -> int:
     if config is None:
         return 1
     try:
-        path = simulate_shard(config, args.scene, args.shard, args.out, multiplier=args.multiplier,
-                              progress=not args.quiet, overwrite=args.overwrite)
+        path = simulate_shard(
+            config,
+            args.scene,
+            args.shard,
+            args.out,
+            multiplier=args.multiplier,
+            progress=not args.quiet,
+            overwrite=args.overwrite,
+        )
     except (FileExistsError, ShardError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -108,13 +115,27 @@ def _preview(args: argparse.Namespace) -> int:
         scene, _ = resolved_scene(config, args.scene)
         k = scene.images_per_set
         cfg = copy.deepcopy(config)
-        cfg["simulation"]["scenes"][args.scene] = {"n_shards": 1, "images_per_shard": k * math.ceil(args.n / k)}
+        cfg["simulation"]["scenes"][args.scene] = {
+            "n_shards": 1,
+            "images_per_shard": k * math.ceil(args.n / k),
+        }
         mults = scene_multipliers(cfg, scene)
-        multiplier = None if mults is None else (args.multiplier if args.multiplier is not None else (
-            1.0 if 1.0 in mults else mults[0]))
+        multiplier = (
+            None
+            if mults is None
+            else (
+                args.multiplier
+                if args.multiplier is not None
+                else (1.0 if 1.0 in mults else mults[0])
+            )
+        )
         with tempfile.TemporaryDirectory() as tmp:
-            shard = simulate_shard(cfg, args.scene, 0, f"{tmp}/preview.h5", multiplier=multiplier, progress=True)
-            plot_scene_examples_from_shard(shard, [args.out], run_name=f"{config['run_name']} (preview)", n=args.n)
+            shard = simulate_shard(
+                cfg, args.scene, 0, f"{tmp}/preview.h5", multiplier=multiplier, progress=True
+            )
+            plot_scene_examples_from_shard(
+                shard, [args.out], run_name=f"{config['run_name']} (preview)", n=args.n
+            )
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -133,12 +154,22 @@ def _train(args: argparse.Namespace) -> int:
         return 1
     ckpt = args.ckpt or str(Path(args.out) / "checkpoints")
     try:
-        summary = run_training(training_section(config), args.train, args.val, args.whitening, args.out, ckpt,
-                               device=config["training"]["device"])
+        summary = run_training(
+            training_section(config),
+            args.train,
+            args.val,
+            args.whitening,
+            args.out,
+            ckpt,
+            device=config["training"]["device"],
+        )
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    print(f"wrote {summary['model']} ({summary['epochs']} epochs, stop: {summary['stop_reason']})", file=sys.stderr)
+    print(
+        f"wrote {summary['model']} ({summary['epochs']} epochs, stop: {summary['stop_reason']})",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -156,13 +187,26 @@ def _analyze_hst(args: argparse.Namespace) -> int:
     hst, grid = config["hst"], config["inference"]["gamma_grid"]
     folder = args.hst or str(Path(config["data"]["resources_dir"]) / "hst")
     try:
-        table = analyze_hst(args.model, folder, args.thresholds, out / "profiles.h5", out / "intervals.csv",
-                            out / "fig5_hst_profiles", out / "fig6_hst_combined", run_name=config["run_name"],
-                            gammas=gamma_grid(grid["low"], grid["high"], grid["n"]), cdm_csv=args.cdm,
-                            combine=hst["combine"], show=hst["show"], highlight=hst["highlight"],
-                            lens_centre=hst["lens_centre"], pixel_scale=config["instrument"]["pixel_scale"],
-                            device=config["inference"]["device"], nfw_scene=config["cdm"]["nfw_scene"],
-                            tnfw_scene=config["cdm"]["tnfw_scene"])
+        table = analyze_hst(
+            args.model,
+            folder,
+            args.thresholds,
+            out / "profiles.h5",
+            out / "intervals.csv",
+            out / "fig5_hst_profiles",
+            out / "fig6_hst_combined",
+            run_name=config["run_name"],
+            gammas=gamma_grid(grid["low"], grid["high"], grid["n"]),
+            cdm_csv=args.cdm,
+            combine=hst["combine"],
+            show=hst["show"],
+            highlight=hst["highlight"],
+            lens_centre=hst["lens_centre"],
+            pixel_scale=config["instrument"]["pixel_scale"],
+            device=config["inference"]["device"],
+            nfw_scene=config["cdm"]["nfw_scene"],
+            tnfw_scene=config["cdm"]["tnfw_scene"],
+        )
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -178,16 +222,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"subslope {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = commands.add_parser("validate-config", help="check a workflow config file against the schema")
+    p = commands.add_parser(
+        "validate-config", help="check a workflow config file against the schema"
+    )
     p.add_argument("path", help="YAML config file, e.g. config/config.yaml")
-    p.add_argument("-q", "--quiet", action="store_true", help="do not print the filled configuration")
+    p.add_argument(
+        "-q", "--quiet", action="store_true", help="do not print the filled configuration"
+    )
     p.set_defaults(func=_validate_config)
 
     p = commands.add_parser("fetch-data", help="copy/download and verify the data files")
-    p.add_argument("--mirror", default=None, help="local folder with hst/, psf/, cosmos/ (tried first)")
+    p.add_argument(
+        "--mirror", default=None, help="local folder with hst/, psf/, cosmos/ (tried first)"
+    )
     p.add_argument("--dest", default="resources", help="destination folder (default: resources)")
     p.add_argument(
-        "--allow-download", action="store_true",
+        "--allow-download",
+        action="store_true",
         help="download files missing from the mirror from their public URLs",
     )
     p.set_defaults(func=_fetch_data)
@@ -197,7 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", required=True, help="scene name (a key of simulation.scenes)")
     p.add_argument("--shard", required=True, type=int, help="shard index (0 .. n_shards - 1)")
     p.add_argument("--out", required=True, help="output HDF5 file (must not exist)")
-    p.add_argument("--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)")
+    p.add_argument(
+        "--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_simulate)
@@ -206,20 +259,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, help="workflow config file")
     p.add_argument("--scene", required=True, help="scene name")
     p.add_argument("--n", type=int, default=8, help="number of images (default 8)")
-    p.add_argument("--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)")
+    p.add_argument(
+        "--multiplier", type=float, default=None, help="concentration multiplier a (CDM scenes)"
+    )
     p.add_argument("--out", required=True, help="figure file (.png, .pdf)")
     p.set_defaults(func=_preview)
 
-    p = commands.add_parser("train", help="train (or resume training) the likelihood-ratio estimator")
+    p = commands.add_parser(
+        "train", help="train (or resume training) the likelihood-ratio estimator"
+    )
     p.add_argument("--config", required=True, help="workflow config file (its training section)")
     p.add_argument("--train", required=True, nargs="+", help="training shard files")
     p.add_argument("--val", required=True, nargs="+", help="validation shard files")
     p.add_argument("--whitening", required=True, help="whitening JSON (rule compute_whitening)")
     p.add_argument("--out", required=True, help="folder for model.pt and training_log.csv")
-    p.add_argument("--ckpt", default=None, help="checkpoint folder (default OUT/checkpoints); resumed from")
+    p.add_argument(
+        "--ckpt", default=None, help="checkpoint folder (default OUT/checkpoints); resumed from"
+    )
     p.set_defaults(func=_train)
 
-    p = commands.add_parser("analyze-hst", help="profiles, intervals and figures of the real HST lenses")
+    p = commands.add_parser(
+        "analyze-hst", help="profiles, intervals and figures of the real HST lenses"
+    )
     p.add_argument("--config", required=True, help="workflow config file (hst, inference sections)")
     p.add_argument("--model", required=True, help="model.pt of the estimator")
     p.add_argument("--thresholds", required=True, help="thresholds.json (rule summarize_coverage)")

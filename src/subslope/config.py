@@ -72,10 +72,16 @@ def schema_defaults(section: str, schema: Mapping[str, Any] | None = None) -> di
             node = node["properties"][part]
         except KeyError:
             raise ConfigError(f"the schema has no config section {section!r}") from None
-    return {k: copy.deepcopy(v["default"]) for k, v in node.get("properties", {}).items() if "default" in v}
+    return {
+        k: copy.deepcopy(v["default"])
+        for k, v in node.get("properties", {}).items()
+        if "default" in v
+    }
 
 
-def fill_defaults(config: Mapping[str, Any], schema: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def fill_defaults(
+    config: Mapping[str, Any], schema: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
     """Return a deep copy of ``config`` with every missing key set to its schema default.
 
     Sections (objects) whose default is ``{}`` are created and then filled recursively,
@@ -133,9 +139,8 @@ def _describe(error: jsonschema.ValidationError) -> str:
         known = set(error.schema.get("properties", {}))
         unknown = sorted(k for k in error.instance if k not in known)
         keys = ", ".join(_key_path(path + [k]) for k in unknown)
-        return (
-            f"unknown config key(s) {keys}; allowed keys at {_key_path(path)}: "
-            + ", ".join(sorted(known))
+        return f"unknown config key(s) {keys}; allowed keys at {_key_path(path)}: " + ", ".join(
+            sorted(known)
         )
     if error.validator == "required":
         return f"config key {_key_path(path)}: {error.message}"
@@ -156,7 +161,9 @@ def validate(config: Mapping[str, Any], *, fill: bool = True) -> dict[str, Any]:
     problem, one per line, each naming its key and what is allowed.
     """
     if not isinstance(config, Mapping):
-        raise ConfigError(f"the configuration must be a mapping of keys, got {type(config).__name__}")
+        raise ConfigError(
+            f"the configuration must be a mapping of keys, got {type(config).__name__}"
+        )
     schema = load_schema()
     full = fill_defaults(config, schema) if fill else copy.deepcopy(dict(config))
     validator = jsonschema.Draft202012Validator(schema)
@@ -197,8 +204,11 @@ def _scene_value(config: Mapping[str, Any], scene: str, key: str) -> Any:
     """The value at dotted ``key`` of scene ``scene``: the config's, else its preset's,
     else the paper scene's (``schemas/scene_presets.yaml``)."""
     presets = _scene_presets()
-    layers = [(config.get("scenes") or {}).get(scene) or {}, presets["presets"].get(scene, {}),
-              presets["paper_scene"]]
+    layers = [
+        (config.get("scenes") or {}).get(scene) or {},
+        presets["presets"].get(scene, {}),
+        presets["paper_scene"],
+    ]
     for layer in layers:
         value: Any = layer
         for part in key.split("."):
@@ -227,22 +237,29 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
     problems: list[str] = []
     grid = config["inference"]["gamma_grid"]
     if not grid["low"] < grid["high"]:
-        problems.append(f"config keys inference.gamma_grid.low/high = {grid['low']!r}/{grid['high']!r}: "
-                        "need low < high")
+        problems.append(
+            f"config keys inference.gamma_grid.low/high = {grid['low']!r}/{grid['high']!r}: "
+            "need low < high"
+        )
     simulated = config["simulation"]["scenes"]
     for name, counts in simulated.items():
         per_set = _scene_value(config, name, "images_per_set")
         if isinstance(per_set, int) and per_set > 0 and counts["images_per_shard"] % per_set:
-            problems.append(f"config key simulation.scenes.{name}.images_per_shard = {counts['images_per_shard']} "
-                            f"must be a multiple of scenes.{name}.images_per_set = {per_set}")
+            problems.append(
+                f"config key simulation.scenes.{name}.images_per_shard = "
+                f"{counts['images_per_shard']} "
+                f"must be a multiple of scenes.{name}.images_per_set = {per_set}"
+            )
     stages = active_stages(config)
     cal, cdm = config["calibration"], config["cdm"]
 
     def need_scene(key: str, name: str) -> bool:
         if name in simulated:
             return True
-        problems.append(f"config key {key} = {name!r}: no shards of that scene; simulated scenes "
-                        f"(simulation.scenes): {', '.join(sorted(simulated)) or 'none'}")
+        problems.append(
+            f"config key {key} = {name!r}: no shards of that scene; simulated scenes "
+            f"(simulation.scenes): {', '.join(sorted(simulated)) or 'none'}"
+        )
         return False
 
     if stages["calibrate"]:
@@ -251,16 +268,21 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
             per_set = _scene_value(config, cal["stack_scene"], "images_per_set")
             too_big = [n for n in cal["n_images"] if n > 1 and n > per_set]
             if too_big:
-                problems.append(f"config key calibration.n_images = {sorted(cal['n_images'])}: N > 1 must not "
-                                f"exceed the images_per_set = {per_set} of calibration.stack_scene "
-                                f"{cal['stack_scene']!r} (too large: {too_big})")
+                problems.append(
+                    f"config key calibration.n_images = {sorted(cal['n_images'])}: N > 1 must not "
+                    f"exceed the images_per_set = {per_set} of calibration.stack_scene "
+                    f"{cal['stack_scene']!r} (too large: {too_big})"
+                )
     if stages["cdm_grid"]:
         if need_scene("cdm.nfw_scene", cdm["nfw_scene"]):
-            mults = (config["simulation"]["multipliers"]
-                     or _scene_value(config, cdm["nfw_scene"], "concentration.multipliers"))
+            mults = config["simulation"]["multipliers"] or _scene_value(
+                config, cdm["nfw_scene"], "concentration.multipliers"
+            )
             if 1.0 not in [float(a) for a in mults]:
-                problems.append(f"config key simulation.multipliers = {list(mults)} must include 1.0 "
-                                "(the CDM prediction, a = 1)")
+                problems.append(
+                    f"config key simulation.multipliers = {list(mults)} must include 1.0 "
+                    "(the CDM prediction, a = 1)"
+                )
         if cdm["tnfw_scene"]:
             need_scene("cdm.tnfw_scene", cdm["tnfw_scene"])
     return problems

@@ -29,6 +29,8 @@ def pick_device(name=None, *, key: str | None = None):
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
         where = f"config key {key} = {name!r}" if key else f"device {name!r}"
-        raise DeviceError(f"{where}: this machine has no CUDA device (torch {torch.__version__}, "
-                          f"CUDA build: {torch.version.cuda or 'none'}); use 'cpu' or 'auto'")
+        raise DeviceError(
+            f"{where}: this machine has no CUDA device (torch {torch.__version__}, "
+            f"CUDA build: {torch.version.cuda or 'none'}); use 'cpu' or 'auto'"
+        )
     return device

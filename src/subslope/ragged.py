@@ -46,13 +46,20 @@ def _counts_from(counts: np.ndarray | None, offsets: np.ndarray | None, n_flat: 
     if counts.ndim != 1 or (counts.size and counts.min() < 0):
         raise ValueError(f"counts must be 1-D and non-negative, got {counts!r}")
     if counts.sum() != n_flat:
-        raise ValueError(f"counts/offsets describe {int(counts.sum())} members but values has {n_flat}")
+        raise ValueError(
+            f"counts/offsets describe {int(counts.sum())} members but values has {n_flat}"
+        )
     return counts
 
 
-def pack_ragged(values: np.ndarray, *, counts: np.ndarray | None = None,
-                offsets: np.ndarray | None = None, n_max: int | None = None,
-                fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def pack_ragged(
+    values: np.ndarray,
+    *,
+    counts: np.ndarray | None = None,
+    offsets: np.ndarray | None = None,
+    n_max: int | None = None,
+    fill: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Flat ragged array → padded ``(B, n_max)`` array and bool mask (vectorised).
 
     ``values`` is the concatenation of all systems' members (``(M,)``, or ``(M, ...)``

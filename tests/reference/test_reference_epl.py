@@ -18,10 +18,12 @@ from subslope.physics.profiles.shear import shear_deflection
 pytestmark = pytest.mark.reference
 F64 = torch.float64
 
-EPL_GRID = [(te, g, e1, e2, cx, cy)
-            for te, cx, cy in [(1.1, 0.1, -0.15), (0.05, -0.4, 0.3)]
-            for g in (1.2, 1.6, 2.0, 2.4, 2.8)
-            for e1, e2 in [(0.0, 0.0), (0.2, -0.2), (-0.13, 0.07), (0.0, 0.19)]]
+EPL_GRID = [
+    (te, g, e1, e2, cx, cy)
+    for te, cx, cy in [(1.1, 0.1, -0.15), (0.05, -0.4, 0.3)]
+    for g in (1.2, 1.6, 2.0, 2.4, 2.8)
+    for e1, e2 in [(0.0, 0.0), (0.2, -0.2), (-0.13, 0.07), (0.0, 0.19)]
+]
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +39,7 @@ def _rel_vec(ax, ay, bx, by):
 @pytest.mark.parametrize("te,g,e1,e2,cx,cy", EPL_GRID)
 def test_epl_vs_lenstronomy(te, g, e1, e2, cx, cy, pts):
     from lenstronomy.LensModel.Profiles.epl import EPL
+
     x, y = pts
     ref = EPL()
     bx, by = ref.derivatives(x, y, te, g, e1, e2, cx, cy)
@@ -52,6 +55,7 @@ def test_epl_vs_lenstronomy(te, g, e1, e2, cx, cy, pts):
 def test_epl_vs_lenstronomy_numba(te, g, e1, e2, cx, cy, pts):
     pytest.importorskip("numba")
     from lenstronomy.LensModel.Profiles.epl_numba import EPL_numba
+
     x, y = pts
     bx, by = EPL_numba().derivatives(x, y, te, g, e1, e2, cx, cy)
     X, Y = torch.tensor(x, dtype=F64), torch.tensor(y, dtype=F64)
@@ -63,6 +67,7 @@ def test_epl_vs_lenstronomy_numba(te, g, e1, e2, cx, cy, pts):
 @pytest.mark.parametrize("a_m,phi_m,cx,cy", [(0.05, 0.4, 0.0, 0.0), (0.01, -2.9, 0.1, -0.2)])
 def test_multipole_vs_lenstronomy(m, a_m, phi_m, cx, cy, pts):
     from lenstronomy.LensModel.Profiles.multipole import Multipole
+
     x, y = pts
     ref = Multipole()
     bx, by = ref.derivatives(x, y, m, a_m, phi_m, cx, cy)
@@ -77,9 +82,12 @@ def test_multipole_vs_lenstronomy(m, a_m, phi_m, cx, cy, pts):
 
 def test_shear_vs_lenstronomy(pts):
     from lenstronomy.LensModel.Profiles.shear import Shear
+
     x, y = pts
     for g1, g2, x0, y0 in [(0.05, -0.08, 0.0, 0.0), (-0.1, 0.03, 0.2, -0.1)]:
         bx, by = Shear().derivatives(x, y, g1, g2, x0, y0)
-        ax, ay = shear_deflection(torch.tensor(x, dtype=F64), torch.tensor(y, dtype=F64), g1, g2, x0, y0)
+        ax, ay = shear_deflection(
+            torch.tensor(x, dtype=F64), torch.tensor(y, dtype=F64), g1, g2, x0, y0
+        )
         np.testing.assert_allclose(ax.numpy(), bx, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(ay.numpy(), by, rtol=1e-12, atol=1e-15)

@@ -28,11 +28,21 @@ def test_sersic_ellipse_matches_lenstronomy(kw):
         x.numpy().ravel(), y.numpy().ravel(), [kw]
     )
     ours = sersic_ellipse(
-        x, y, kw["amp"], kw["R_sersic"], kw["n_sersic"], kw["e1"], kw["e2"], kw["center_x"], kw["center_y"]
+        x,
+        y,
+        kw["amp"],
+        kw["R_sersic"],
+        kw["n_sersic"],
+        kw["e1"],
+        kw["e2"],
+        kw["center_x"],
+        kw["center_y"],
     )
     np.testing.assert_allclose(ours.numpy().ravel(), ref, rtol=1e-6, atol=0)
     tot = LightModel(["SERSIC_ELLIPSE"]).total_flux([kw])[0]
-    ours_tot = sersic_total_flux(torch.tensor(kw["amp"], dtype=torch.float64), kw["R_sersic"], kw["n_sersic"])
+    ours_tot = sersic_total_flux(
+        torch.tensor(kw["amp"], dtype=torch.float64), kw["R_sersic"], kw["n_sersic"]
+    )
     assert float(ours_tot) == pytest.approx(tot, rel=1e-10)
 
 

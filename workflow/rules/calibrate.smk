@@ -1,25 +1,26 @@
 # Stage: calibrate. The threshold tau_N of every stack size N (one job per N) and their
 # held-out coverage (subslope.stages.calibrate; statistics in subslope.stats).
 
+
 rule calibrate_threshold:
     input:
         profiles=calibration_inputs,
     output:
         npz="results/calibrate_threshold/N{n}.npz",
-    params:
-        level=CAL["level"],
-        seed=derived_seed("calibration"),
-        heldout_fraction=CAL["heldout_fraction"],
     log:
         "logs/calibrate_threshold/N{n}.log",
     benchmark:
         "results/benchmarks/calibrate_threshold/N{n}.tsv"
+    conda:
+        "../envs/subslope.yaml"
     threads: 1
     resources:
         mem_mb=2000,
         runtime=30,
-    conda:
-        "../envs/subslope.yaml"
+    params:
+        level=CAL["level"],
+        seed=derived_seed("calibration"),
+        heldout_fraction=CAL["heldout_fraction"],
     script:
         "../scripts/calibrate_threshold.py"
 
@@ -36,16 +37,16 @@ rule summarize_coverage:
             caption="../report/coverage.rst",
             category="Calibration",
         ),
-    params:
-        run_name=RUN,
     log:
         "logs/summarize_coverage.log",
     benchmark:
         "results/benchmarks/summarize_coverage.tsv"
+    conda:
+        "../envs/subslope.yaml"
     threads: 1
     resources:
         mem_mb=1000,
-    conda:
-        "../envs/subslope.yaml"
+    params:
+        run_name=RUN,
     script:
         "../scripts/summarize_coverage.py"

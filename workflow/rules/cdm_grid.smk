@@ -1,6 +1,7 @@
 # Stage: cdm_grid. Stack MLEs of the simulated CDM sets per concentration multiplier,
 # their bands and figure 4 (subslope.stages.cdm_grid).
 
+
 rule measure_cdm_grid:
     input:
         profiles=cdm_inputs(),
@@ -13,6 +14,15 @@ rule measure_cdm_grid:
             caption="../report/fig4_concentration_grid.rst",
             category="CDM",
         ),
+    log:
+        "logs/measure_cdm_grid.log",
+    benchmark:
+        "results/benchmarks/measure_cdm_grid.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
     params:
         # [scene, multiplier, profiles file] of every CDM shard
         groups=[
@@ -24,14 +34,5 @@ rule measure_cdm_grid:
         tnfw_scene=CDM["tnfw_scene"],
         band=CDM["band"],
         run_name=RUN,
-    log:
-        "logs/measure_cdm_grid.log",
-    benchmark:
-        "results/benchmarks/measure_cdm_grid.tsv"
-    threads: 1
-    resources:
-        mem_mb=2000,
-    conda:
-        "../envs/subslope.yaml"
     script:
         "../scripts/measure_cdm_grid.py"

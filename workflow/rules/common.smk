@@ -11,7 +11,6 @@ import subslope.io.resources
 import subslope.simulation.scenes
 import subslope.stages.train
 
-
 # Validate once, when the workflow loads: the schema (types, ranges, defaults filled
 # in) and every cross-key check, with messages that name the key and what is allowed.
 # workflow/schemas/config.schema.yaml links to the same schema for `snakemake --lint`.
@@ -37,9 +36,6 @@ def resource_files(prefix):
 # Simulation: one entry {scene, shard, multiplier, path} per shard file of the config.
 SHARD_JOBS = subslope.stages.plan.shard_jobs(config)
 SIM_SCENES = sorted({job["scene"] for job in SHARD_JOBS})
-
-
-
 
 
 def simulation_hash(scene):
@@ -97,7 +93,9 @@ def simulation_targets():
 STAGE_ON = subslope.config.active_stages(config)
 for _name, _on in STAGE_ON.items():
     if config["stages"][_name] and not _on:
-        logger.warning(f"stage {_name} is on but a stage it needs is off: it does not run")
+        logger.warning(
+            f"stage {_name} is on but a stage it needs is off: it does not run"
+        )
 
 
 # ---------------------------------------------------------------------------------------
@@ -111,14 +109,21 @@ GRID = config["inference"]["gamma_grid"]
 
 def eval_scenes():
     """Scenes whose shards are evaluated: the calibration scenes and the CDM scenes."""
-    scenes = [CAL["single_scene"], CAL["stack_scene"], CDM["nfw_scene"], CDM["tnfw_scene"]]
+    scenes = [
+        CAL["single_scene"],
+        CAL["stack_scene"],
+        CDM["nfw_scene"],
+        CDM["tnfw_scene"],
+    ]
     simulated = {job["scene"] for job in SHARD_JOBS}
     return [s for s in dict.fromkeys(scenes) if s in simulated]
 
 
 def profile_path(job):
     """Profiles file of one shard job (mirrors the shard path)."""
-    return job["path"].replace("results/simulate_shard/", "results/evaluate_profiles/", 1)
+    return job["path"].replace(
+        "results/simulate_shard/", "results/evaluate_profiles/", 1
+    )
 
 
 def profile_files(scene, multiplier=None):
@@ -126,7 +131,8 @@ def profile_files(scene, multiplier=None):
     return [
         profile_path(job)
         for job in SHARD_JOBS
-        if job["scene"] == scene and (multiplier is None or job["multiplier"] == multiplier)
+        if job["scene"] == scene
+        and (multiplier is None or job["multiplier"] == multiplier)
     ]
 
 
@@ -144,7 +150,11 @@ def cdm_inputs():
 def derived_seed(section):
     """The section's seed, or one derived from the global seed when it is null."""
     value = config[section].get("seed")
-    return subslope.stages.plan.derived_seed(config["seed"], section) if value is None else int(value)
+    return (
+        subslope.stages.plan.derived_seed(config["seed"], section)
+        if value is None
+        else int(value)
+    )
 
 
 def benchmark_files():
@@ -152,7 +162,9 @@ def benchmark_files():
     out = {}
     if STAGE_ON["simulate"]:
         out["simulate"] = [
-            job["path"].replace("results/simulate_shard/", "results/benchmarks/simulate_shard/").replace(".h5", ".tsv")
+            job["path"]
+            .replace("results/simulate_shard/", "results/benchmarks/simulate_shard/")
+            .replace(".h5", ".tsv")
             for job in SHARD_JOBS
         ]
         if shard_files("train"):
@@ -161,12 +173,18 @@ def benchmark_files():
         out["train"] = ["results/benchmarks/train_estimator.tsv"]
     if STAGE_ON["evaluate"]:
         out["evaluate"] = [
-            profile_path(job).replace("results/evaluate_profiles/", "results/benchmarks/evaluate_profiles/").replace(".h5", ".tsv")
+            profile_path(job)
+            .replace(
+                "results/evaluate_profiles/", "results/benchmarks/evaluate_profiles/"
+            )
+            .replace(".h5", ".tsv")
             for job in SHARD_JOBS
             if job["scene"] in eval_scenes()
         ]
     if STAGE_ON["calibrate"]:
-        out["calibrate"] = [f"results/benchmarks/calibrate_threshold/N{n}.tsv" for n in CAL_N]
+        out["calibrate"] = [
+            f"results/benchmarks/calibrate_threshold/N{n}.tsv" for n in CAL_N
+        ]
         out["calibrate"].append("results/benchmarks/summarize_coverage.tsv")
     if STAGE_ON["cdm_grid"]:
         out["cdm_grid"] = ["results/benchmarks/measure_cdm_grid.tsv"]
@@ -189,7 +207,9 @@ def all_targets():
     if STAGE_ON["train"]:
         targets += rules.train_estimator.output
     if STAGE_ON["evaluate"]:
-        targets += [profile_path(job) for job in SHARD_JOBS if job["scene"] in eval_scenes()]
+        targets += [
+            profile_path(job) for job in SHARD_JOBS if job["scene"] in eval_scenes()
+        ]
     if STAGE_ON["calibrate"]:
         targets += rules.summarize_coverage.output
     if STAGE_ON["cdm_grid"]:
@@ -210,8 +230,12 @@ def all_targets():
 # as "not run"); its CSVs sit beside results/summary.md.
 SUMMARY_CSVS = ["hst_result", "cdm_prediction", "coverage", "trend", "stage_runtime"]
 # Hash of the whole validated config except the data location (machine-specific).
-CONFIG_HASH = subslope.config.config_hash({k: v for k, v in config.items() if k != "data"})[:16]
-CONFIG_FILES = [os.path.relpath(f) for f in (workflow.overwrite_configfiles or workflow.configfiles)]
+CONFIG_HASH = subslope.config.config_hash(
+    {k: v for k, v in config.items() if k != "data"}
+)[:16]
+CONFIG_FILES = [
+    os.path.relpath(f) for f in (workflow.overwrite_configfiles or workflow.configfiles)
+]
 
 
 def summary_inputs(wildcards):

@@ -2,28 +2,29 @@
 # evaluation scenes, one job per shard, mirroring results/simulate_shard/
 # (subslope.stages.evaluate; docs/inference.md).
 
+
 rule evaluate_profiles:
     input:
         shard="results/simulate_shard/{scene}/shard_{shard}.h5",
         model=rules.train_estimator.output.model,
     output:
         h5="results/evaluate_profiles/{scene}/shard_{shard}.h5",
-    params:
-        gamma_grid=GRID,
-        batch_size=config["inference"]["batch_size"],
-        device=config["inference"]["device"],
-        run_name=RUN,
     log:
         "logs/evaluate_profiles/{scene}/shard_{shard}.log",
     benchmark:
         "results/benchmarks/evaluate_profiles/{scene}/shard_{shard}.tsv"
+    conda:
+        "../envs/subslope.yaml"
     threads: config["inference"]["threads"]
     resources:
         mem_mb=2000,
         runtime=60,
         gpu=config["inference"]["gpus"],
-    conda:
-        "../envs/subslope.yaml"
+    params:
+        gamma_grid=GRID,
+        batch_size=config["inference"]["batch_size"],
+        device=config["inference"]["device"],
+        run_name=RUN,
     script:
         "../scripts/evaluate_profiles.py"
 

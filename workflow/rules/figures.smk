@@ -1,6 +1,7 @@
 # Stage: figures. Training curves and figures 2-3 with the estimator trend
 # (subslope.stages.figures).
 
+
 rule plot_training_curves:
     input:
         log_csv=rules.train_estimator.output.log_csv,
@@ -11,15 +12,15 @@ rule plot_training_curves:
             caption="../report/training_curves.rst",
             category="Training",
         ),
-    params:
-        run_name=RUN,
     log:
         "logs/plot_training_curves.log",
     benchmark:
         "results/benchmarks/plot_training_curves.tsv"
-    threads: 1
     conda:
         "../envs/subslope.yaml"
+    threads: 1
+    params:
+        run_name=RUN,
     script:
         "../scripts/plot_training_curves.py"
 
@@ -43,14 +44,14 @@ rule plot_validation:
             caption="../report/fig3_stacks.rst",
             category="Validation",
         ),
-    params:
-        run_name=RUN,
     log:
         "logs/plot_validation.log",
     benchmark:
         "results/benchmarks/plot_validation.tsv"
-    threads: 1
     conda:
         "../envs/subslope.yaml"
+    threads: 1
+    params:
+        run_name=RUN,
     script:
         "../scripts/plot_validation.py"

@@ -1,5 +1,6 @@
 # Stage: gallery. The 13 HST cutouts side by side (subslope.stages.gallery).
 
+
 rule plot_hst_gallery:
     input:
         hst=rules.fetch_data.output.hst,
@@ -10,13 +11,13 @@ rule plot_hst_gallery:
             caption="../report/hst_gallery.rst",
             category="Data",
         ),
-    params:
-        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
-        run_name=config["run_name"],
-        pixel_scale=config["instrument"]["pixel_scale"],
     log:
         "logs/plot_hst_gallery.log",
     conda:
         "../envs/subslope.yaml"
+    params:
+        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
+        run_name=config["run_name"],
+        pixel_scale=config["instrument"]["pixel_scale"],
     script:
         "../scripts/plot_hst_gallery.py"

@@ -1,6 +1,7 @@
 # Stage: hst. Profiles, intervals and figures 5-6 of the real HST lenses
 # (subslope.stages.hst).
 
+
 rule analyze_hst:
     input:
         hst=rules.fetch_data.output.hst,
@@ -22,6 +23,15 @@ rule analyze_hst:
             caption="../report/fig6_hst_combined.rst",
             category="HST",
         ),
+    log:
+        "logs/analyze_hst.log",
+    benchmark:
+        "results/benchmarks/analyze_hst.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
     params:
         folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
         hst=config["hst"],
@@ -31,14 +41,5 @@ rule analyze_hst:
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
         run_name=RUN,
-    log:
-        "logs/analyze_hst.log",
-    benchmark:
-        "results/benchmarks/analyze_hst.tsv"
-    threads: 1
-    resources:
-        mem_mb=2000,
-    conda:
-        "../envs/subslope.yaml"
     script:
         "../scripts/analyze_hst.py"

@@ -11,20 +11,20 @@ rule simulate_shard:
         cosmos=rules.fetch_data.output.cosmos,
     output:
         h5="results/simulate_shard/{scene}/shard_{shard}.h5",
-    params:
-        # The resolved values that determine this shard's images: a change of any of
-        # them reruns the job, and nothing else does (subslope.stages.plan.shard_job_config).
-        job=shard_job,
     log:
         "logs/simulate_shard/{scene}/shard_{shard}.log",
     benchmark:
         "results/benchmarks/simulate_shard/{scene}/shard_{shard}.tsv"
+    conda:
+        "../envs/subslope.yaml"
     threads: 1
     resources:
         mem_mb=4000,
         runtime=120,
-    conda:
-        "../envs/subslope.yaml"
+    params:
+        # The resolved values that determine this shard's images: a change of any of
+        # them reruns the job, and nothing else does (subslope.stages.plan.shard_job_config).
+        job=shard_job,
     script:
         "../scripts/simulate_shard.py"
 
@@ -47,11 +47,11 @@ rule compute_whitening:
         "logs/compute_whitening.log",
     benchmark:
         "results/benchmarks/compute_whitening.tsv"
+    conda:
+        "../envs/subslope.yaml"
     threads: 1
     resources:
         mem_mb=2000,
-    conda:
-        "../envs/subslope.yaml"
     script:
         "../scripts/compute_whitening.py"
 
@@ -66,14 +66,14 @@ rule plot_scene_examples:
             caption="../report/scene_examples.rst",
             category="Simulation",
         ),
+    log:
+        "logs/plot_scene_examples/{scene}.log",
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
     params:
         run_name=config["run_name"],
         n_examples=8,
         cosmos=lambda wildcards, input: os.path.dirname(input.cosmos[0]),
-    log:
-        "logs/plot_scene_examples/{scene}.log",
-    threads: 1
-    conda:
-        "../envs/subslope.yaml"
     script:
         "../scripts/plot_scene_examples.py"

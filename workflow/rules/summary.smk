@@ -1,12 +1,18 @@
 # Stage: summary. results/summary.md and the CSVs beside it, from the results of the
 # stages that ran (subslope.stages.summary).
 
+
 rule write_summary:
     input:
         unpack(summary_inputs),
     output:
         md="results/summary.md",
         csv=expand("results/{name}.csv", name=SUMMARY_CSVS),
+    log:
+        "logs/write_summary.log",
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
     params:
         run_name=RUN,
         config_hash=CONFIG_HASH,
@@ -14,10 +20,5 @@ rule write_summary:
         benchmarks=benchmark_files(),
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
-    log:
-        "logs/write_summary.log",
-    threads: 1
-    conda:
-        "../envs/subslope.yaml"
     script:
         "../scripts/write_summary.py"

@@ -10,7 +10,11 @@ CKPT_KEY = subslope.stages.train.checkpoint_key(
     TRAINING,
     shard_files("train"),
     shard_files("validation"),
-    {scene: simulation_hash(scene) for scene in ("train", "validation") if shard_files(scene)},
+    {
+        scene: simulation_hash(scene)
+        for scene in ("train", "validation")
+        if shard_files(scene)
+    },
 )
 
 
@@ -22,21 +26,21 @@ rule train_estimator:
     output:
         model="results/train_estimator/model.pt",
         log_csv="results/train_estimator/training_log.csv",
-    params:
-        training=TRAINING,
-        ckpt_dir=f"results/checkpoints/train_estimator/{CKPT_KEY}",
-        device=config["training"]["device"],
     log:
         "logs/train_estimator.log",
     benchmark:
         "results/benchmarks/train_estimator.tsv"
+    conda:
+        "../envs/subslope.yaml"
     threads: config["training"]["threads"]
     resources:
         mem_mb=config["training"]["mem_mb"],
         runtime=config["training"]["runtime"],
         # GPU request for cluster executors (SLURM: --gpus); local runs ignore it.
         gpu=config["training"]["gpus"],
-    conda:
-        "../envs/subslope.yaml"
+    params:
+        training=TRAINING,
+        ckpt_dir=f"results/checkpoints/train_estimator/{CKPT_KEY}",
+        device=config["training"]["device"],
     script:
         "../scripts/train_estimator.py"

@@ -1,12 +1,13 @@
-"""Snakemake script of rule analyze_hst: profiles, intervals and figures 5-6 of the real HST lenses."""
+"""Snakemake script of rule analyze_hst: profiles, intervals and figures 5-6 of the real HST
+lenses."""
 
 import logging
 
 import torch
 
+from subslope.logs import log_to_file
 from subslope.stages.hst import analyze_hst
 from subslope.stats.intervals import gamma_grid
-from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])
 try:

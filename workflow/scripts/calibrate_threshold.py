@@ -1,9 +1,10 @@
-"""Snakemake script of rule calibrate_threshold: threshold tau_N and held-out coverage for stacks of N images."""
+"""Snakemake script of rule calibrate_threshold: threshold tau_N and held-out coverage for stacks
+of N images."""
 
 import logging
 
-from subslope.stages.calibrate import calibrate_stack_size
 from subslope.logs import log_to_file
+from subslope.stages.calibrate import calibrate_stack_size
 
 log_to_file(snakemake.log[0])
 try:
@@ -16,8 +17,11 @@ try:
         heldout_fraction=snakemake.params.heldout_fraction,
     )
     if not out["tau_exact"]:
-        logging.warning("too few stacks (%d) for a conformal threshold at level %g: tau = max t",
-                        out["t_true"].size, out["level"])
+        logging.warning(
+            "too few stacks (%d) for a conformal threshold at level %g: tau = max t",
+            out["t_true"].size,
+            out["level"],
+        )
 except Exception:
     logging.exception("calibrate_threshold failed")
     raise

@@ -2,14 +2,19 @@
 
 import logging
 
-from subslope.stages.simulate import compute_whitening
 from subslope.logs import log_to_file
+from subslope.stages.simulate import compute_whitening
 
 log_to_file(snakemake.log[0])
 try:
     result = compute_whitening(list(snakemake.input.shards), snakemake.output.json)
-    logging.info("mean %.6g, std %.6g over %d images of %d shards",
-                 result["mean"], result["std"], result["n_images"], len(result["shards"]))
+    logging.info(
+        "mean %.6g, std %.6g over %d images of %d shards",
+        result["mean"],
+        result["std"],
+        result["n_images"],
+        len(result["shards"]),
+    )
 except Exception:
     logging.exception("compute_whitening failed")
     raise

@@ -1,12 +1,13 @@
-"""Snakemake script of rule evaluate_profiles: ln r on the gamma grid for every image of one shard (also evaluate_cdm_profiles)."""
+"""Snakemake script of rule evaluate_profiles: ln r on the gamma grid for every image of one shard
+(also evaluate_cdm_profiles)."""
 
 import logging
 
 import torch
 
+from subslope.logs import log_to_file
 from subslope.stages.evaluate import evaluate_shard
 from subslope.stats.intervals import gamma_grid
-from subslope.logs import log_to_file
 
 log_to_file(snakemake.log[0])
 try:

@@ -2,8 +2,8 @@
 
 import logging
 
-from subslope.stages.data import fetch_files
 from subslope.logs import log_to_file
+from subslope.stages.data import fetch_files
 
 log_to_file(snakemake.log[0])
 try:

@@ -1,9 +1,10 @@
-"""Snakemake script of rule measure_cdm_grid: stack MLEs of the NFW/tNFW sets per multiplier and figure 4."""
+"""Snakemake script of rule measure_cdm_grid: stack MLEs of the NFW/tNFW sets per multiplier and
+figure 4."""
 
 import logging
 
-from subslope.stages.cdm_grid import measure_cdm_grid
 from subslope.logs import log_to_file
+from subslope.stages.cdm_grid import measure_cdm_grid
 
 log_to_file(snakemake.log[0])
 try:

@@ -2,8 +2,8 @@
 
 import logging
 
-from subslope.stages.simulate import plot_scene_examples_from_shard
 from subslope.logs import log_to_file
+from subslope.stages.simulate import plot_scene_examples_from_shard
 
 log_to_file(snakemake.log[0])
 try:

@@ -1,11 +1,11 @@
-"""Snakemake script of rule plot_validation: figures 2 (single images) and 3 (stacks), and the Spearman trend."""
-
-import logging
+"""Snakemake script of rule plot_validation: figures 2 (single images) and 3 (stacks), and the
+Spearman trend."""
 
 import json
+import logging
 
-from subslope.stages.figures import plot_validation
 from subslope.logs import log_to_file
+from subslope.stages.figures import plot_validation
 
 log_to_file(snakemake.log[0])
 try:

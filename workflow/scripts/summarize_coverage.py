@@ -1,9 +1,10 @@
-"""Snakemake script of rule summarize_coverage: calibration table, thresholds per N and the coverage figure."""
+"""Snakemake script of rule summarize_coverage: calibration table, thresholds per N and the
+coverage figure."""
 
 import logging
 
-from subslope.stages.calibrate import summarize_coverage
 from subslope.logs import log_to_file
+from subslope.stages.calibrate import summarize_coverage
 
 log_to_file(snakemake.log[0])
 try:

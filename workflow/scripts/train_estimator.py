@@ -1,17 +1,20 @@
-"""Snakemake script of rule train_estimator: train (or resume training) the likelihood-ratio estimator."""
+"""Snakemake script of rule train_estimator: train (or resume training) the likelihood-ratio
+estimator."""
 
 import logging
 import os
 
 import torch
 
-from subslope.stages.train import run_training
 from subslope.logs import log_to_file
+from subslope.stages.train import run_training
 
 log_to_file(snakemake.log[0])
 try:
     torch.set_num_threads(snakemake.threads)
-    logging.info("checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir)
+    logging.info(
+        "checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir
+    )
     summary = run_training(
         snakemake.params.training,
         list(snakemake.input.train),

@@ -1,11 +1,10 @@
 """Snakemake script of rule write_summary: results/summary.md and the CSVs beside it."""
 
+import json
 import logging
 
-import json
-
-from subslope.stages.summary import write_summary
 from subslope.logs import log_to_file
+from subslope.stages.summary import write_summary
 
 log_to_file(snakemake.log[0])
 try:

@@ -76,12 +76,35 @@ def _interval_scatter(ax, gamma_true, mle, lo, hi, open_lower, open_upper, prior
     yerr = np.vstack([np.maximum(mle - lo, 0), np.maximum(hi - mle, 0)])
     ax.plot(prior, prior, color="0.4", lw=1, ls="--", zorder=1, label="1:1")
     closed = ~open_any
-    ax.errorbar(gamma_true[closed], mle[closed], yerr=yerr[:, closed], fmt="o", ms=3.5, color=color, ecolor=color,
-                elinewidth=0.8, capsize=1.5, alpha=0.85, label=label, zorder=3)
+    ax.errorbar(
+        gamma_true[closed],
+        mle[closed],
+        yerr=yerr[:, closed],
+        fmt="o",
+        ms=3.5,
+        color=color,
+        ecolor=color,
+        elinewidth=0.8,
+        capsize=1.5,
+        alpha=0.85,
+        label=label,
+        zorder=3,
+    )
     if open_any.any():
-        ax.errorbar(gamma_true[open_any], mle[open_any], yerr=yerr[:, open_any], fmt="o", ms=3.5, mfc="white",
-                    color="0.45", ecolor="0.6", elinewidth=0.8, capsize=1.5, zorder=2,
-                    label="interval open at a prior edge")
+        ax.errorbar(
+            gamma_true[open_any],
+            mle[open_any],
+            yerr=yerr[:, open_any],
+            fmt="o",
+            ms=3.5,
+            mfc="white",
+            color="0.45",
+            ecolor="0.6",
+            elinewidth=0.8,
+            capsize=1.5,
+            zorder=2,
+            label="interval open at a prior edge",
+        )
     pad = 0.02 * (prior[1] - prior[0])
     ax.set_xlim(prior[0] - pad, prior[1] + pad)
     ax.set_ylim(prior[0] - pad, prior[1] + pad)
@@ -94,9 +117,26 @@ def _interval_scatter(ax, gamma_true, mle, lo, hi, open_lower, open_upper, prior
     return covered
 
 
-def _scatter_figure(gamma_true, mle, lo, hi, *, run_name, source, gamma_range, open_lower, open_upper, prior,
-                    threshold, title, color, unit):
-    gamma_true, mle, lo, hi = _arrays(gamma_true, mle, lo, hi, names=("gamma_true", "mle", "lo", "hi"))
+def _scatter_figure(
+    gamma_true,
+    mle,
+    lo,
+    hi,
+    *,
+    run_name,
+    source,
+    gamma_range,
+    open_lower,
+    open_upper,
+    prior,
+    threshold,
+    title,
+    color,
+    unit,
+):
+    gamma_true, mle, lo, hi = _arrays(
+        gamma_true, mle, lo, hi, names=("gamma_true", "mle", "lo", "hi")
+    )
     keep = np.ones(gamma_true.size, bool)
     if gamma_range is not None:
         keep = (gamma_true > gamma_range[0]) & (gamma_true < gamma_range[1])
@@ -120,36 +160,93 @@ def _scatter_figure(gamma_true, mle, lo, hi, *, run_name, source, gamma_range, o
 # ---------------------------------------------------------------------------------------
 # Fig. 2 and 3
 # ---------------------------------------------------------------------------------------
-def validation_scatter(gamma_true, mle, lo, hi, *, run_name: str, source: str | None = None,
-                       gamma_range: tuple[float, float] | None = (1.2, 2.8), open_lower=None, open_upper=None,
-                       prior: tuple[float, float] = (1.1, 2.9), threshold: float | None = None) -> Figure:
+def validation_scatter(
+    gamma_true,
+    mle,
+    lo,
+    hi,
+    *,
+    run_name: str,
+    source: str | None = None,
+    gamma_range: tuple[float, float] | None = (1.2, 2.8),
+    open_lower=None,
+    open_upper=None,
+    prior: tuple[float, float] = (1.1, 2.9),
+    threshold: float | None = None,
+) -> Figure:
     """Fig. 2: single-image γ_MLE with its 68% interval ``[lo, hi]`` against the true γ.
 
     Only images with ``gamma_range[0] < γ_true < gamma_range[1]`` are drawn (``None``:
     all). Intervals flagged ``open_lower``/``open_upper`` (reaching a prior edge) are drawn
     hollow and grey. The corner text gives the fraction of intervals containing γ_true.
     """
-    return _scatter_figure(gamma_true, mle, lo, hi, run_name=run_name, source=source, gamma_range=gamma_range,
-                           open_lower=open_lower, open_upper=open_upper, prior=prior, threshold=threshold,
-                           title="Single images: maximum-likelihood slope vs truth", color="#444444", unit="images")
+    return _scatter_figure(
+        gamma_true,
+        mle,
+        lo,
+        hi,
+        run_name=run_name,
+        source=source,
+        gamma_range=gamma_range,
+        open_lower=open_lower,
+        open_upper=open_upper,
+        prior=prior,
+        threshold=threshold,
+        title="Single images: maximum-likelihood slope vs truth",
+        color="#444444",
+        unit="images",
+    )
 
 
-def stack_scatter(gamma_true, mle, lo, hi, *, run_name: str, n_images: int = 13, source: str | None = None,
-                  gamma_range: tuple[float, float] | None = None, open_lower=None, open_upper=None,
-                  prior: tuple[float, float] = (1.1, 2.9), threshold: float | None = None) -> Figure:
+def stack_scatter(
+    gamma_true,
+    mle,
+    lo,
+    hi,
+    *,
+    run_name: str,
+    n_images: int = 13,
+    source: str | None = None,
+    gamma_range: tuple[float, float] | None = None,
+    open_lower=None,
+    open_upper=None,
+    prior: tuple[float, float] = (1.1, 2.9),
+    threshold: float | None = None,
+) -> Figure:
     """Fig. 3: γ_MLE ± 68% of stacks of ``n_images`` EPL images against their shared true γ."""
-    return _scatter_figure(gamma_true, mle, lo, hi, run_name=run_name, source=source, gamma_range=gamma_range,
-                           open_lower=open_lower, open_upper=open_upper, prior=prior, threshold=threshold,
-                           title=f"Stacks of {n_images} EPL images: maximum-likelihood slope vs truth", color=C_HST,
-                           unit=f"stacks of {n_images}")
+    return _scatter_figure(
+        gamma_true,
+        mle,
+        lo,
+        hi,
+        run_name=run_name,
+        source=source,
+        gamma_range=gamma_range,
+        open_lower=open_lower,
+        open_upper=open_upper,
+        prior=prior,
+        threshold=threshold,
+        title=f"Stacks of {n_images} EPL images: maximum-likelihood slope vs truth",
+        color=C_HST,
+        unit=f"stacks of {n_images}",
+    )
 
 
 # ---------------------------------------------------------------------------------------
 # Fig. 4
 # ---------------------------------------------------------------------------------------
-def concentration_grid(multipliers, mles_nfw, mles_tnfw=None, *, run_name: str, source: str | None = None,
-                       n_images: int = 13, cdm: float = 1.0, hst: tuple[float, float, float] | None = None,
-                       percentiles: tuple[float, float, float] = (16, 50, 84)) -> Figure:
+def concentration_grid(
+    multipliers,
+    mles_nfw,
+    mles_tnfw=None,
+    *,
+    run_name: str,
+    source: str | None = None,
+    n_images: int = 13,
+    cdm: float = 1.0,
+    hst: tuple[float, float, float] | None = None,
+    percentiles: tuple[float, float, float] = (16, 50, 84),
+) -> Figure:
     """Fig. 4: stack MLEs against the concentration multiplier ``a`` (log axis).
 
     ``mles_nfw``/``mles_tnfw``: ``(n_a, n_sets)`` MLEs of the ``n_sets`` stacks of
@@ -171,15 +268,32 @@ def concentration_grid(multipliers, mles_nfw, mles_tnfw=None, *, run_name: str, 
         if m.ndim != 2 or m.shape[0] != a.size:
             raise ValueError(f"{label}: MLEs must have shape (n_a={a.size}, n_sets), got {m.shape}")
         lo, med, hi = np.nanpercentile(m, percentiles, axis=1)
-        ax.errorbar(a * shift, med, yerr=[med - lo, hi - med], fmt=marker, color=color, ms=5, capsize=2.5,
-                    label=f"{label} (median, {percentiles[0]:g}–{percentiles[2]:g}% of {m.shape[1]} stacks)")
+        ax.errorbar(
+            a * shift,
+            med,
+            yerr=[med - lo, hi - med],
+            fmt=marker,
+            color=color,
+            ms=5,
+            capsize=2.5,
+            label=f"{label} (median, {percentiles[0]:g}–{percentiles[2]:g}% "
+            f"of {m.shape[1]} stacks)",
+        )
     if hst is not None:
         h_mle, h_lo, h_hi = hst
         ax.axhspan(h_lo, h_hi, color=C_HST, alpha=0.15, lw=0)
         ax.axhline(h_mle, color=C_HST, lw=1, label=f"HST stack: {h_mle:.2f} (68%)")
     ax.axvline(cdm, color="0.3", ls=":", lw=1.2)
-    ax.text(cdm, 0.02, f" CDM prediction ($a$ = {cdm:g})", transform=ax.get_xaxis_transform(), ha="left",
-            va="bottom", fontsize=8, color="0.2")
+    ax.text(
+        cdm,
+        0.02,
+        f" CDM prediction ($a$ = {cdm:g})",
+        transform=ax.get_xaxis_transform(),
+        ha="left",
+        va="bottom",
+        fontsize=8,
+        color="0.2",
+    )
     ax.set_xscale("log")
     ax.set_xticks(a, [f"{v:g}" for v in a])
     ax.xaxis.set_minor_locator(NullLocator())
@@ -208,9 +322,18 @@ def _draw_bands(ax, bands):
         ax.axvspan(lo, hi, color=color, alpha=0.18, lw=0, label=label)
 
 
-def hst_profiles(gammas, profiles: Mapping[str, np.ndarray], threshold: float, *, run_name: str,
-                 source: str | None = None, kind: str = "t", wilks: float | None = None,
-                 highlight: Sequence[str] = ("SDSSJ0946+1006",), ymax: float | None = None) -> Figure:
+def hst_profiles(
+    gammas,
+    profiles: Mapping[str, np.ndarray],
+    threshold: float,
+    *,
+    run_name: str,
+    source: str | None = None,
+    kind: str = "t",
+    wilks: float | None = None,
+    highlight: Sequence[str] = ("SDSSJ0946+1006",),
+    ymax: float | None = None,
+) -> Figure:
     """Fig. 5: test-statistic profiles t(γ) of individual HST systems.
 
     ``profiles``: system name → ``t(γ)`` (``kind='t'``) or ``ln r̂(γ)`` (``kind='log_ratio'``,
@@ -228,12 +351,24 @@ def hst_profiles(gammas, profiles: Mapping[str, np.ndarray], threshold: float, *
     cmap = colormaps["tab10" if len(ts) <= 10 else "tab20"]
     for k, (name, t) in enumerate(ts.items()):
         hl = name in highlight
-        ax.plot(g, t, color=cmap(k % cmap.N), lw=2.4 if hl else 1.1, label=name + (" ★" if hl else ""),
-                zorder=3 if hl else 2)
-    ax.axhline(threshold, color="k", ls="--", lw=1, label=rf"68% threshold $\tau_1$ = {threshold:.3g}")
+        ax.plot(
+            g,
+            t,
+            color=cmap(k % cmap.N),
+            lw=2.4 if hl else 1.1,
+            label=name + (" ★" if hl else ""),
+            zorder=3 if hl else 2,
+        )
+    ax.axhline(
+        threshold, color="k", ls="--", lw=1, label=rf"68% threshold $\tau_1$ = {threshold:.3g}"
+    )
     if wilks is not None:
         ax.axhline(wilks, color="0.5", ls=":", lw=1, label=rf"Wilks $\chi^2_1$: {wilks:.3g}")
-    top = ymax if ymax is not None else max(3 * threshold, min(max(float(t.max()) for t in ts.values()), 12 * threshold))
+    top = (
+        ymax
+        if ymax is not None
+        else max(3 * threshold, min(max(float(t.max()) for t in ts.values()), 12 * threshold))
+    )
     ax.set_ylim(0, top * 1.03)
     ax.set_xlim(g[0], g[-1])
     ax.set_xlabel(GAMMA_LABEL)
@@ -244,10 +379,21 @@ def hst_profiles(gammas, profiles: Mapping[str, np.ndarray], threshold: float, *
     return _finish(fig, "Test-statistic profiles of individual HST lenses")
 
 
-def hst_combined(gammas, t_combined, tau_13: float, band_nfw: tuple[float, float] | None,
-                 band_tnfw: tuple[float, float] | None, mle: float | None = None,
-                 interval: Interval | tuple[float, float] | None = None, *, run_name: str, source: str | None = None,
-                 kind: str = "t", n_images: int = 13, ymax: float | None = None) -> Figure:
+def hst_combined(
+    gammas,
+    t_combined,
+    tau_13: float,
+    band_nfw: tuple[float, float] | None,
+    band_tnfw: tuple[float, float] | None,
+    mle: float | None = None,
+    interval: Interval | tuple[float, float] | None = None,
+    *,
+    run_name: str,
+    source: str | None = None,
+    kind: str = "t",
+    n_images: int = 13,
+    ymax: float | None = None,
+) -> Figure:
     """Fig. 6: the combined HST profile with its calibrated 68% interval and the CDM bands.
 
     ``t_combined``: t(γ) (or ``ln r̂`` with ``kind='log_ratio'``) of the stack of all HST
@@ -283,12 +429,20 @@ def hst_combined(gammas, t_combined, tau_13: float, band_nfw: tuple[float, float
         bands.append(("CDM tNFW subhalos, $a$ = 1 (68%)", band_tnfw, C_TNFW))
     _draw_bands(ax, bands)
     ax.plot(g, t, color=C_HST, lw=2, label=f"HST, {n_images} lenses combined")
-    ax.axhline(tau_13, color="k", ls="--", lw=1, label=rf"calibrated 68% threshold $\tau_{{{n_images}}}$ = {tau_13:.3g}")
+    ax.axhline(
+        tau_13,
+        color="k",
+        ls="--",
+        lw=1,
+        label=rf"calibrated 68% threshold $\tau_{{{n_images}}}$ = {tau_13:.3g}",
+    )
     if lo is not None:
         for v in (lo, hi):
             ax.axvline(v, color=C_HST, ls=":", lw=1.2)
-        txt = (rf"$\gamma_\mathrm{{MLE}} = {mle:.2f}^{{+{hi - mle:.2f}}}_{{-{mle - lo:.2f}}}$" + note)
-        ax.text(0.03, 0.97, txt, transform=ax.transAxes, ha="left", va="top", fontsize=9, color=C_HST)
+        txt = rf"$\gamma_\mathrm{{MLE}} = {mle:.2f}^{{+{hi - mle:.2f}}}_{{-{mle - lo:.2f}}}$" + note
+        ax.text(
+            0.03, 0.97, txt, transform=ax.transAxes, ha="left", va="top", fontsize=9, color=C_HST
+        )
     top = ymax if ymax is not None else max(4 * tau_13, min(float(t.max()), 12 * tau_13))
     ax.set_ylim(0, top * 1.03)
     ax.set_xlim(g[0], g[-1])
@@ -303,8 +457,15 @@ def hst_combined(gammas, t_combined, tau_13: float, band_nfw: tuple[float, float
 # ---------------------------------------------------------------------------------------
 # coverage
 # ---------------------------------------------------------------------------------------
-def coverage_figure(table, levels, coverages_empirical, coverages_wilks=None, *, run_name: str,
-                    source: str | None = None) -> Figure:
+def coverage_figure(
+    table,
+    levels,
+    coverages_empirical,
+    coverages_wilks=None,
+    *,
+    run_name: str,
+    source: str | None = None,
+) -> Figure:
     """Calibration check: held-out coverage per stack size, and expected-coverage curves.
 
     Left: observed coverage at the table's level (0.68) for each N with its binomial
@@ -314,7 +475,14 @@ def coverage_figure(table, levels, coverages_empirical, coverages_wilks=None, *,
     or a mapping ``N → (L,)``. A calibrated procedure follows the diagonal; below it
     means over-confident intervals.
     """
-    needed = {"n_images", "coverage", "coverage_err", "coverage_wilks", "coverage_wilks_err", "n_heldout"}
+    needed = {
+        "n_images",
+        "coverage",
+        "coverage_err",
+        "coverage_wilks",
+        "coverage_wilks_err",
+        "n_heldout",
+    }
     missing = needed - set(table.columns)
     if missing:
         raise ValueError(f"coverage_figure: table lacks column(s) {sorted(missing)}")
@@ -324,24 +492,56 @@ def coverage_figure(table, levels, coverages_empirical, coverages_wilks=None, *,
     ax1, ax2 = fig.subplots(1, 2)
     n = table["n_images"].to_numpy()
     ax1.axhline(level, color="0.4", ls="--", lw=1, label=f"target {level:.0%}")
-    ax1.errorbar(n - 0.08, table["coverage"], yerr=table["coverage_err"], fmt="o", color=C_HST, capsize=2.5,
-                 label=r"calibrated $\tau_N$")
-    ax1.errorbar(n + 0.08, table["coverage_wilks"], yerr=table["coverage_wilks_err"], fmt="o", mfc="white",
-                 color="0.35", capsize=2.5, label=r"Wilks $\chi^2_1$")
+    ax1.errorbar(
+        n - 0.08,
+        table["coverage"],
+        yerr=table["coverage_err"],
+        fmt="o",
+        color=C_HST,
+        capsize=2.5,
+        label=r"calibrated $\tau_N$",
+    )
+    ax1.errorbar(
+        n + 0.08,
+        table["coverage_wilks"],
+        yerr=table["coverage_wilks_err"],
+        fmt="o",
+        mfc="white",
+        color="0.35",
+        capsize=2.5,
+        label=r"Wilks $\chi^2_1$",
+    )
     for ni, nh in zip(n, table["n_heldout"], strict=True):
-        ax1.annotate(f"{nh}", (ni, 0.02), xycoords=("data", "axes fraction"), ha="center", fontsize=6, color="0.4")
+        ax1.annotate(
+            f"{nh}",
+            (ni, 0.02),
+            xycoords=("data", "axes fraction"),
+            ha="center",
+            fontsize=6,
+            color="0.4",
+        )
     ax1.set_xticks(n)
     ax1.set_xlabel("images per stack $N$ (numbers: held-out stacks)")
     ax1.set_ylabel(f"held-out coverage of the {level:.0%} interval")
-    span = max(0.12, float(np.nanmax(np.abs(np.r_[table["coverage"], table["coverage_wilks"]] - level))) + 0.05)
+    span = max(
+        0.12,
+        float(np.nanmax(np.abs(np.r_[table["coverage"], table["coverage_wilks"]] - level))) + 0.05,
+    )
     ax1.set_ylim(max(0, level - span), min(1, level + span))
     ax1.grid(alpha=0.25)
     ax1.legend(fontsize=7, frameon=False, loc="upper right")
 
     ax2.plot([0, 1], [0, 1], color="0.4", ls="--", lw=1, label="ideal")
-    emp = coverages_empirical if isinstance(coverages_empirical, Mapping) else {None: coverages_empirical}
-    wil = (coverages_wilks if isinstance(coverages_wilks, Mapping) else {None: coverages_wilks}) \
-        if coverages_wilks is not None else {}
+    emp = (
+        coverages_empirical
+        if isinstance(coverages_empirical, Mapping)
+        else {None: coverages_empirical}
+    )
+    wil = (
+        (coverages_wilks if isinstance(coverages_wilks, Mapping) else {None: coverages_wilks})
+        if coverages_wilks is not None
+        else {}
+    )
     cmap = colormaps["viridis"]
     keys = list(emp)
     for i, key in enumerate(keys):

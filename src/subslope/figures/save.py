@@ -17,19 +17,34 @@ from subslope.io.atomic import atomic_write
 __all__ = ["footer", "save_figure"]
 
 
-def footer(fig, run_name: str, source: str | None = None, extra: str | None = None, *,
-           fontsize: float = 6.5, color: str = "0.35") -> None:
+def footer(
+    fig,
+    run_name: str,
+    source: str | None = None,
+    extra: str | None = None,
+    *,
+    fontsize: float = 6.5,
+    color: str = "0.35",
+) -> None:
     """Draw ``config run_name=… · subslope <version> · source · extra`` along the bottom."""
     parts = [f"config run_name={run_name!r}", f"subslope {__version__}"]
     if source:
         parts.append(str(source))
     if extra:
         parts.append(extra)
-    fig.text(0.5, 0.005, " · ".join(parts), ha="center", va="bottom", fontsize=fontsize, color=color)
+    fig.text(
+        0.5, 0.005, " · ".join(parts), ha="center", va="bottom", fontsize=fontsize, color=color
+    )
 
 
-def save_figure(fig, target: str | os.PathLike[str] | Sequence[str | os.PathLike[str]], *, run_name: str,
-                dpi: int = 150, title: str | None = None) -> list[Path]:
+def save_figure(
+    fig,
+    target: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    *,
+    run_name: str,
+    dpi: int = 150,
+    title: str | None = None,
+) -> list[Path]:
     """Write ``fig`` atomically and return the paths written.
 
     ``target`` is either a stem (``results/figures/fig2`` → ``fig2.pdf`` and ``fig2.png``)

@@ -22,7 +22,14 @@ def plot_training_curves(log_csv, stem, *, run_name: str, source: str | None = N
     ax.plot(frame["epoch"], frame["val_loss"], "s-", label="validation loss", color="#c2185b")
     ax.axhline(math.log(2), color="0.6", ls=":", lw=1, label="chance (ln 2)")
     best = int(frame["val_loss"].idxmin())
-    ax.plot(frame["epoch"][best], frame["val_loss"][best], "*", ms=12, color="#c2185b", label="best (kept)")
+    ax.plot(
+        frame["epoch"][best],
+        frame["val_loss"][best],
+        "*",
+        ms=12,
+        color="#c2185b",
+        label="best (kept)",
+    )
     ax.set_xlabel("epoch")
     ax.set_ylabel("NRE loss (binary cross-entropy)")
     if "lr" in frame:

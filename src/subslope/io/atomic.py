@@ -70,8 +70,11 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> Pa
     return write_text(path, json.dumps(obj, indent=indent) + "\n")
 
 
-def write_csv(path: str | os.PathLike[str], rows: Sequence[Mapping[str, Any]],
-              columns: Sequence[str] | None = None) -> Path:
+def write_csv(
+    path: str | os.PathLike[str],
+    rows: Sequence[Mapping[str, Any]],
+    columns: Sequence[str] | None = None,
+) -> Path:
     """Write ``rows`` (one mapping per row) as CSV to ``path`` atomically."""
     import pandas as pd
 

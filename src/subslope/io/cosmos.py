@@ -26,10 +26,11 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from subslope.physics.instrument import ZERO_POINT
 import pandas as pd
 from astropy.cosmology import Planck18
 from astropy.io import fits
+
+from subslope.physics.instrument import ZERO_POINT
 
 COSMOS_ZERO_POINT = 25.95
 """Mean AB zero point of the COSMOS F814W stamps (e⁻/s ↔ magnitude)."""
@@ -71,8 +72,9 @@ class CosmosCatalog:
     table: pd.DataFrame
 
     @classmethod
-    def load(cls, folder: str | Path, catalog_file: str = CATALOG_FILE,
-             fits_file: str = FITS_FILE) -> "CosmosCatalog":
+    def load(
+        cls, folder: str | Path, catalog_file: str = CATALOG_FILE, fits_file: str = FITS_FILE
+    ) -> CosmosCatalog:
         folder = Path(folder)
         paths = [folder / catalog_file, folder / fits_file]
         for path in paths:
@@ -83,20 +85,25 @@ class CosmosCatalog:
         if len(main) != len(fit) or not np.array_equal(main["IDENT"], fit["IDENT"]):
             raise CosmosError(
                 f"{paths[0].name} and {paths[1].name} do not list the same galaxies in the "
-                "same order (IDENT columns differ)")
-        table = pd.DataFrame({
-            "ident": main["IDENT"].astype(np.int64),
-            "mag_auto": fit["mag_auto"].astype(np.float64),
-            "flux_radius": fit["flux_radius"].astype(np.float64),
-            "zphot": fit["zphot"].astype(np.float64),
-            "pixel_scale": main["PIXEL_SCALE"].astype(np.float64),
-            "gal_filename": [str(s).strip() for s in main["GAL_FILENAME"]],
-            "gal_hdu": main["GAL_HDU"].astype(np.int64),
-        })
+                "same order (IDENT columns differ)"
+            )
+        table = pd.DataFrame(
+            {
+                "ident": main["IDENT"].astype(np.int64),
+                "mag_auto": fit["mag_auto"].astype(np.float64),
+                "flux_radius": fit["flux_radius"].astype(np.float64),
+                "zphot": fit["zphot"].astype(np.float64),
+                "pixel_scale": main["PIXEL_SCALE"].astype(np.float64),
+                "gal_filename": [str(s).strip() for s in main["GAL_FILENAME"]],
+                "gal_hdu": main["GAL_HDU"].astype(np.int64),
+            }
+        )
         if table["ident"].duplicated().any():
             dup = table.loc[table["ident"].duplicated(), "ident"].tolist()[:5]
             raise CosmosError(f"duplicate IDENT values in {paths[0].name}: {dup}")
-        shapes = [_stamp_shape(folder / f, h) for f, h in zip(table["gal_filename"], table["gal_hdu"])]
+        shapes = [
+            _stamp_shape(folder / f, h) for f, h in zip(table["gal_filename"], table["gal_hdu"])
+        ]
         table["ny"] = [s[0] for s in shapes]
         table["nx"] = [s[1] for s in shapes]
         return cls(folder=folder, table=table)
@@ -108,7 +115,7 @@ class CosmosCatalog:
     def idents(self) -> np.ndarray:
         return self.table["ident"].to_numpy()
 
-    def select(self, cuts: CosmosCuts) -> "CosmosCatalog":
+    def select(self, cuts: CosmosCuts) -> CosmosCatalog:
         """Galaxies passing ``cuts``; raises if none is left."""
         t = self.table
         ok = np.ones(len(t), dtype=bool)
@@ -123,22 +130,29 @@ class CosmosCatalog:
         if cuts.exclude:
             ok &= ~np.isin(t["ident"].to_numpy(), np.asarray(cuts.exclude))
         if not ok.any():
+            sides = np.minimum(t["nx"], t["ny"])
             raise CosmosError(
                 f"no COSMOS galaxy in {self.folder} passes the cuts {cuts} "
-                f"(catalogue of {len(t)}: mag_auto {t['mag_auto'].min():.2f}–{t['mag_auto'].max():.2f}, "
+                f"(catalogue of {len(t)}: mag_auto "
+                f"{t['mag_auto'].min():.2f}–{t['mag_auto'].max():.2f}, "
                 f"flux_radius {t['flux_radius'].min():.1f}–{t['flux_radius'].max():.1f} px, "
-                f"min stamp side {int(np.minimum(t['nx'], t['ny']).min())}–{int(np.minimum(t['nx'], t['ny']).max())} px)")
+                f"min stamp side {int(sides.min())}–{int(sides.max())} px)"
+            )
         return CosmosCatalog(folder=self.folder, table=t.loc[ok].reset_index(drop=True))
 
-    def subset(self, idents) -> "CosmosCatalog":
+    def subset(self, idents) -> CosmosCatalog:
         """The galaxies with the given IDENTs, in that order."""
         idents = np.asarray(idents, dtype=np.int64)
         index = pd.Index(self.table["ident"])
         missing = idents[~np.isin(idents, index)]
         if missing.size:
-            raise CosmosError(f"IDENT(s) {missing.tolist()} not in the COSMOS catalogue at {self.folder}")
-        return CosmosCatalog(folder=self.folder,
-                             table=self.table.iloc[index.get_indexer(idents)].reset_index(drop=True))
+            raise CosmosError(
+                f"IDENT(s) {missing.tolist()} not in the COSMOS catalogue at {self.folder}"
+            )
+        return CosmosCatalog(
+            folder=self.folder,
+            table=self.table.iloc[index.get_indexer(idents)].reset_index(drop=True),
+        )
 
     def stamp(self, ident: int) -> np.ndarray:
         """The stamp of galaxy ``ident`` (float64, e⁻/s per pixel, COSMOS zero point)."""
@@ -149,7 +163,9 @@ class CosmosCatalog:
         return _read_stamp(str(self.folder / row["gal_filename"]), int(row["gal_hdu"])).copy()
 
 
-def split_idents(idents, fractions: dict[str, float], salt: str = "subslope") -> dict[str, np.ndarray]:
+def split_idents(
+    idents, fractions: dict[str, float], salt: str = "subslope"
+) -> dict[str, np.ndarray]:
     """Deterministic split of galaxy IDENTs into train/validation/test.
 
     Galaxies are ordered by a SHA-256 hash of ``salt:ident`` (independent of catalogue
@@ -167,7 +183,8 @@ def split_idents(idents, fractions: dict[str, float], salt: str = "subslope") ->
     needed = int((frac > 0).sum())
     if len(idents) < needed:
         raise CosmosError(
-            f"{len(idents)} galaxies cannot fill {needed} non-empty splits {dict(fractions)}")
+            f"{len(idents)} galaxies cannot fill {needed} non-empty splits {dict(fractions)}"
+        )
     keys = [hashlib.sha256(f"{salt}:{i}".encode()).hexdigest() for i in idents]
     ordered = idents[np.argsort(keys, kind="stable")]
     counts = np.floor(frac * len(idents)).astype(int)
@@ -175,7 +192,7 @@ def split_idents(idents, fractions: dict[str, float], salt: str = "subslope") ->
     # hand out the rounding remainder (or take back the minimum-one excess) via the largest split
     counts[int(np.argmax(frac))] += len(idents) - counts.sum()
     edges = np.concatenate([[0], np.cumsum(counts)])
-    return {s: np.sort(ordered[edges[k]:edges[k + 1]]) for k, s in enumerate(SPLITS)}
+    return {s: np.sort(ordered[edges[k] : edges[k + 1]]) for k, s in enumerate(SPLITS)}
 
 
 def k_correction(z):
@@ -183,9 +200,16 @@ def k_correction(z):
     return 2.5 * np.log1p(np.asarray(z, dtype=np.float64))
 
 
-def place_at_redshift(stamp: np.ndarray, pixel_scale: float, z_phot: float, z_source: float, *,
-                      zero_point_in: float = COSMOS_ZERO_POINT, zero_point_out: float = ZERO_POINT,
-                      cosmo=Planck18) -> tuple[np.ndarray, float]:
+def place_at_redshift(
+    stamp: np.ndarray,
+    pixel_scale: float,
+    z_phot: float,
+    z_source: float,
+    *,
+    zero_point_in: float = COSMOS_ZERO_POINT,
+    zero_point_out: float = ZERO_POINT,
+    cosmo=Planck18,
+) -> tuple[np.ndarray, float]:
     """Move a COSMOS stamp from z_phot to z_source (docs/simulation.md).
 
     Parameters
@@ -205,12 +229,18 @@ def place_at_redshift(stamp: np.ndarray, pixel_scale: float, z_phot: float, z_so
     sb = np.asarray(stamp, dtype=np.float64) / pixel_scale**2
     sb = sb * 10 ** ((zero_point_out - zero_point_in) / 2.5)
     sb = sb * 10 ** (-(k_correction(z_source) - k_correction(z_phot)) / 2.5)
-    ratio = (cosmo.angular_diameter_distance(z_phot) / cosmo.angular_diameter_distance(z_source)).value
+    ratio = (
+        cosmo.angular_diameter_distance(z_phot) / cosmo.angular_diameter_distance(z_source)
+    ).value
     return sb, float(pixel_scale * ratio)
 
 
-def normalize_to_magnitude(surface_brightness: np.ndarray, pixel_scale: float, magnitude: float,
-                           zero_point: float = ZERO_POINT) -> np.ndarray:
+def normalize_to_magnitude(
+    surface_brightness: np.ndarray,
+    pixel_scale: float,
+    magnitude: float,
+    zero_point: float = ZERO_POINT,
+) -> np.ndarray:
     """Rescale a surface-brightness map so its total flux has apparent ``magnitude``."""
     total = float(np.sum(surface_brightness)) * pixel_scale**2
     if not total > 0:

@@ -20,10 +20,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from subslope.physics.instrument import PIXEL_SCALE
 
-__all__ = ["ObservationError", "Observation", "load_image", "load_catalog", "load_hst", "IMAGE_SHAPE",
-           "find_lens_centre"]
+__all__ = [
+    "ObservationError",
+    "Observation",
+    "load_image",
+    "load_catalog",
+    "load_hst",
+    "IMAGE_SHAPE",
+    "find_lens_centre",
+]
 
 #: Shape of every HST cutout of the analysis.
 IMAGE_SHAPE = (100, 100)
@@ -128,7 +136,9 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
         reader = csv.DictReader(handle)
         missing = [c for c in CATALOG_COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
-            raise ObservationError(f"{path}: missing column(s) {missing}; expected {list(CATALOG_COLUMNS)}")
+            raise ObservationError(
+                f"{path}: missing column(s) {missing}; expected {list(CATALOG_COLUMNS)}"
+            )
         rows = list(reader)
     out: list[dict] = []
     seen_files: dict[str, int] = {}
@@ -140,19 +150,31 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
         if not file or not name:
             raise ObservationError(f"{where}: empty 'file' or 'system'")
         if file in seen_files:
-            raise ObservationError(f"{where}: duplicate file {file!r} (also on line {seen_files[file]})")
+            raise ObservationError(
+                f"{where}: duplicate file {file!r} (also on line {seen_files[file]})"
+            )
         if name in seen_names:
-            raise ObservationError(f"{where}: duplicate system {name!r} (also on line {seen_names[name]})")
+            raise ObservationError(
+                f"{where}: duplicate system {name!r} (also on line {seen_names[name]})"
+            )
         seen_files[file], seen_names[name] = lineno, lineno
         z_l = _as_float(row["z_lens"], "z_lens", where)
         z_s = _as_float(row["z_source"], "z_source", where)
         theta_e = _as_float(row["theta_E_arcsec"], "theta_E_arcsec", where)
         if not 0 < z_l < z_s:
-            raise ObservationError(f"{where} ({name}): need 0 < z_lens < z_source, got {z_l}, {z_s}")
+            raise ObservationError(
+                f"{where} ({name}): need 0 < z_lens < z_source, got {z_l}, {z_s}"
+            )
         if theta_e <= 0:
             raise ObservationError(f"{where} ({name}): theta_E_arcsec must be > 0, got {theta_e}")
         out.append(
-            {"file": file, "system": name, "z_lens": z_l, "z_source": z_s, "theta_E_arcsec": theta_e}
+            {
+                "file": file,
+                "system": name,
+                "z_lens": z_l,
+                "z_source": z_s,
+                "theta_E_arcsec": theta_e,
+            }
         )
     if not out:
         raise ObservationError(f"{path}: catalogue has no rows")
@@ -178,7 +200,10 @@ def load_hst(
     for row in load_catalog(catalog):
         file = folder / row["file"]
         if not file.is_file():
-            raise ObservationError(f"{catalog}: system {row['system']} lists file {row['file']!r}, not found in {folder}")
+            raise ObservationError(
+                f"{catalog}: system {row['system']} lists file {row['file']!r}, not found in "
+                f"{folder}"
+            )
         observations.append(
             Observation(
                 name=row["system"],
@@ -196,10 +221,19 @@ def _pixel_coords(n: int, pixel_scale: float) -> np.ndarray:
     return (np.arange(n) - (n - 1) / 2.0) * pixel_scale
 
 
-def find_lens_centre(image, *, pixel_scale: float = PIXEL_SCALE, method: str = "light_centroid", smoothing: float = 1.0,
-                     search_radius: float = 0.4, aperture: float = 0.3, peak_fraction: float = 0.5,
-                     iterations: int = 3) -> tuple[float, float]:
-    """Lens centre ``(x, y)`` in arcsec (package pixel convention, ``image[j, i]`` at ``(x_i, y_j)``).
+def find_lens_centre(
+    image,
+    *,
+    pixel_scale: float = PIXEL_SCALE,
+    method: str = "light_centroid",
+    smoothing: float = 1.0,
+    search_radius: float = 0.4,
+    aperture: float = 0.3,
+    peak_fraction: float = 0.5,
+    iterations: int = 3,
+) -> tuple[float, float]:
+    """Lens centre ``(x, y)`` in arcsec (package pixel convention, ``image[j, i]`` at ``(x_i,
+    y_j)``).
 
     ``light_centroid``: smooth the image with a Gaussian of ``smoothing`` pixels, take the
     brightest smoothed pixel within ``search_radius`` of the image centre (the lens light

@@ -24,10 +24,30 @@ __all__ = ["PROFILE_FIELDS", "write_profiles", "read_profiles"]
 
 
 #: Datasets of a profiles file (besides ``gammas``).
-PROFILE_FIELDS = ("log_ratio", "gamma_true", "set_index", "c_multiplier", "theta_e", "lens_x", "lens_y")
+PROFILE_FIELDS = (
+    "log_ratio",
+    "gamma_true",
+    "set_index",
+    "c_multiplier",
+    "theta_e",
+    "lens_x",
+    "lens_y",
+)
 
-def write_profiles(path, *, log_ratio, gammas, gamma_true=None, set_index=None, c_multiplier=None,
-                   theta_e=None, lens_x=None, lens_y=None, attrs: Mapping[str, Any] | None = None) -> Path:
+
+def write_profiles(
+    path,
+    *,
+    log_ratio,
+    gammas,
+    gamma_true=None,
+    set_index=None,
+    c_multiplier=None,
+    theta_e=None,
+    lens_x=None,
+    lens_y=None,
+    attrs: Mapping[str, Any] | None = None,
+) -> Path:
     """Write one profiles file atomically (:func:`subslope.io.atomic.atomic_write`)."""
     path = Path(path)
     lr = np.asarray(log_ratio, dtype=np.float64)
@@ -45,7 +65,9 @@ def write_profiles(path, *, log_ratio, gammas, gamma_true=None, set_index=None, 
     data = {
         "log_ratio": lr,
         "gamma_true": col(gamma_true, np.float64, np.nan),
-        "set_index": col(set_index, np.int64, 0) if set_index is not None else np.arange(b, dtype=np.int64),
+        "set_index": col(set_index, np.int64, 0)
+        if set_index is not None
+        else np.arange(b, dtype=np.int64),
         "c_multiplier": col(c_multiplier, np.float64, np.nan),
         "theta_e": col(theta_e, np.float64, np.nan),
         "lens_x": col(lens_x, np.float64, np.nan),
@@ -56,8 +78,11 @@ def write_profiles(path, *, log_ratio, gammas, gamma_true=None, set_index=None, 
         for k, v in data.items():
             fh.create_dataset(k, data=v)
         for k, v in (attrs or {}).items():
-            fh.attrs[k] = v if isinstance(v, (int, float, str, np.number)) else json.dumps(v, default=str)
+            fh.attrs[k] = (
+                v if isinstance(v, (int, float, str, np.number)) else json.dumps(v, default=str)
+            )
     return path
+
 
 def read_profiles(paths) -> dict[str, np.ndarray]:
     """Concatenate profiles files: every field of :data:`PROFILE_FIELDS`, ``gammas`` and

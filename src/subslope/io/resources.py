@@ -151,7 +151,9 @@ def _download(entry: RegistryEntry, dest: Path) -> None:
                 progressbar=False,
             )
         except ValueError as exc:  # pooch's hash mismatch
-            raise ChecksumError(f"download of {entry.path} from {entry.url} failed verification: {exc}") from exc
+            raise ChecksumError(
+                f"download of {entry.path} from {entry.url} failed verification: {exc}"
+            ) from exc
         except Exception as exc:  # network errors and HTTP errors
             raise MissingResourceError(
                 f"could not download {entry.path} from {entry.url}: {exc}"
@@ -219,7 +221,9 @@ def fetch(
             try:
                 _download(entry, target)
             except MissingResourceError as exc:
-                raise MissingResourceError(f"data file {entry.path} not found in {where}, and {exc}") from exc
+                raise MissingResourceError(
+                    f"data file {entry.path} not found in {where}, and {exc}"
+                ) from exc
         else:
             if entry.url is None:
                 how = "it is mirror-only (no public URL)"
@@ -254,7 +258,9 @@ def fetch_files(
         posix = Path(file).as_posix()
         matches = [e for e in registry if posix == e.path or posix.endswith("/" + e.path)]
         if not matches:
-            raise ResourceError(f"{file} is not a registered data file (see subslope/data/registry.txt)")
+            raise ResourceError(
+                f"{file} is not a registered data file (see subslope/data/registry.txt)"
+            )
         entry = max(matches, key=lambda e: len(e.path))
         root = Path(posix[: len(posix) - len(entry.path)] or ".")
         groups.setdefault(root, []).append(entry)

@@ -4,7 +4,8 @@ A *shard* is one HDF5 file holding ``N`` simulated images and everything needed 
 reproduce them (layout version :data:`FORMAT_VERSION`)::
 
     images                  (N, H, W) float32, chunked per image, gzip + shuffle
-    params/<name>           (N,) per-image (macro) parameters of subslope.simulation.macro.sample_macro:
+    params/<name>           (N,) per-image (macro) parameters of
+    subslope.simulation.macro.sample_macro:
                             float64 or int64; always theta_e, lens_x, lens_y, set_index,
                             plus gamma_sub (the label γ) in labelled scenes and
                             c_multiplier in CDM scenes
@@ -144,7 +145,9 @@ def write_shard(
     for group, arrays, per_image in (("params", params, True), ("sources", sources or {}, True)):
         for key, value in arrays.items():
             if per_image and np.shape(value) != (n,):
-                raise ShardError(f"{path}: {group}/{key} has shape {np.shape(value)}, expected ({n},)")
+                raise ShardError(
+                    f"{path}: {group}/{key} has shape {np.shape(value)}, expected ({n},)"
+                )
     for group, arrays in (("subhalos", subhalos), ("los", los)):
         counts = np.asarray(arrays.get("counts"))
         if counts.shape != (n,):
@@ -152,8 +155,12 @@ def write_shard(
         total = int(counts.sum())
         for key, value in arrays.items():
             if key != "counts" and np.shape(value) != (total,):
-                raise ShardError(f"{path}: {group}/{key} has {np.shape(value)} entries, counts sum to {total}")
-    missing = [d for d in REQUIRED_DATASETS if d.startswith("params/") and d.split("/")[1] not in params]
+                raise ShardError(
+                    f"{path}: {group}/{key} has {np.shape(value)} entries, counts sum to {total}"
+                )
+    missing = [
+        d for d in REQUIRED_DATASETS if d.startswith("params/") and d.split("/")[1] not in params
+    ]
     if missing:
         raise ShardError(f"{path}: missing required parameter(s) {missing}")
 
@@ -170,9 +177,16 @@ def write_shard(
     try:
         with h5py.File(tmp, "w", track_order=False) as f:
             chunks = (1, h, w) if n else None
-            f.create_dataset("images", data=images, chunks=chunks, track_times=False, **(comp if n else {}))
+            f.create_dataset(
+                "images", data=images, chunks=chunks, track_times=False, **(comp if n else {})
+            )
             _dataset(f, "psf", np.asarray(psf, dtype=np.float64))
-            for group, arrays in (("params", params), ("sources", sources or {}), ("subhalos", subhalos), ("los", los)):
+            for group, arrays in (
+                ("params", params),
+                ("sources", sources or {}),
+                ("subhalos", subhalos),
+                ("los", los),
+            ):
                 g = f.create_group(group, track_order=False)
                 for key in sorted(arrays):
                     _dataset(g, key, arrays[key])
@@ -251,7 +265,11 @@ class Shard:
         counts = arrays["counts"]
         off = np.concatenate([[0], np.cumsum(counts)])
         sel = np.atleast_1d(np.arange(counts.size)[index])
-        pick = np.concatenate([np.arange(off[i], off[i + 1]) for i in sel]) if sel.size else np.zeros(0, np.int64)
+        pick = (
+            np.concatenate([np.arange(off[i], off[i + 1]) for i in sel])
+            if sel.size
+            else np.zeros(0, np.int64)
+        )
         out = {k: v[pick] for k, v in arrays.items() if k != "counts"}
         out["counts"] = counts[sel]
         return out
@@ -282,23 +300,35 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
     try:
         handle = h5py.File(path, "r")
     except OSError as exc:
-        raise ShardError(f"{path} is not a readable HDF5 file (truncated or corrupt?): {exc}") from None
+        raise ShardError(
+            f"{path} is not a readable HDF5 file (truncated or corrupt?): {exc}"
+        ) from None
     try:
         fmt = _decode(handle.attrs.get("format"))
         if fmt != FORMAT_NAME:
-            raise ShardError(f"{path} is not a subslope shard (format attribute {fmt!r}, expected {FORMAT_NAME!r})")
+            raise ShardError(
+                f"{path} is not a subslope shard (format attribute {fmt!r}, expected "
+                f"{FORMAT_NAME!r})"
+            )
         version = _decode(handle.attrs.get("format_version"))
         if version != FORMAT_VERSION:
-            raise ShardError(f"{path} has shard format version {version!r}; this subslope reads version {FORMAT_VERSION}")
+            raise ShardError(
+                f"{path} has shard format version {version!r}; this subslope reads version "
+                f"{FORMAT_VERSION}"
+            )
         if not bool(handle.attrs.get("complete", False)):
-            raise ShardError(f"{path} is incomplete (no 'complete' attribute): the writer did not finish")
+            raise ShardError(
+                f"{path} is incomplete (no 'complete' attribute): the writer did not finish"
+            )
         n = int(handle.attrs["n_images"])
         missing = [d for d in REQUIRED_DATASETS if d not in handle]
         if missing:
             raise ShardError(f"{path} lacks required dataset(s) {missing}")
         for d in REQUIRED_DATASETS:
             if d != "psf" and handle[d].shape[0] != n:
-                raise ShardError(f"{path}: dataset {d} has {handle[d].shape[0]} rows, n_images = {n}")
+                raise ShardError(
+                    f"{path}: dataset {d} has {handle[d].shape[0]} rows, n_images = {n}"
+                )
         # Touch the last image: a truncated file fails here rather than mid-training.
         if n:
             handle["images"][n - 1]

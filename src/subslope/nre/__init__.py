@@ -18,12 +18,20 @@ import importlib
 from typing import Any
 
 _NAMES = {
-    "NRELoss": "loss", "negative_indices": "loss", "nre_loss": "loss",
-    "PRESETS": "models", "RatioEstimator": "models", "ResNetTrunk": "models", "build_model": "models",
+    "NRELoss": "loss",
+    "negative_indices": "loss",
+    "nre_loss": "loss",
+    "PRESETS": "models",
+    "RatioEstimator": "models",
+    "ResNetTrunk": "models",
+    "build_model": "models",
     "model_card": "models",
-    "preprocess": "preprocess", "read_whitening": "preprocess",
-    "ShardBatches": "data", "make_loader": "data",
-    "load_estimator": "train", "train": "train",
+    "preprocess": "preprocess",
+    "read_whitening": "preprocess",
+    "ShardBatches": "data",
+    "make_loader": "data",
+    "load_estimator": "train",
+    "train": "train",
     "log_ratio_profiles": "evaluate",
 }
 

@@ -43,6 +43,7 @@ import h5py
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
+
 from subslope.physics.instrument import PIXEL_SCALE
 
 from .preprocess import preprocess, read_whitening
@@ -54,7 +55,10 @@ PARAM_KEYS = ("gamma_sub", "theta_e", "lens_x", "lens_y")
 
 def _check_shard(path, fh: h5py.File, *, require_label: bool = True) -> int:
     if not bool(fh.attrs.get("complete", False)):
-        raise ValueError(f"shard {os.fspath(path)!r} is not marked complete (root attribute 'complete' is not True)")
+        raise ValueError(
+            f"shard {os.fspath(path)!r} is not marked complete (root attribute 'complete' is not "
+            "True)"
+        )
     if "images" not in fh:
         raise ValueError(f"shard {os.fspath(path)!r} has no 'images' dataset")
     n = fh["images"].shape[0]
@@ -64,7 +68,10 @@ def _check_shard(path, fh: h5py.File, *, require_label: bool = True) -> int:
         if f"params/{key}" not in fh:
             raise ValueError(f"shard {os.fspath(path)!r} has no 'params/{key}' dataset")
         if fh[f"params/{key}"].shape != (n,):
-            raise ValueError(f"shard {os.fspath(path)!r}: params/{key} has shape {fh[f'params/{key}'].shape}, expected ({n},)")
+            raise ValueError(
+                f"shard {os.fspath(path)!r}: params/{key} has shape {fh[f'params/{key}'].shape}, "
+                f"expected ({n},)"
+            )
     return n
 
 
@@ -132,7 +139,11 @@ class ShardBatches(Dataset):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         self.paths = [os.fspath(p) for p in paths]
-        self.batch_size, self.block_size, self.window = int(batch_size), int(block_size), int(window)
+        self.batch_size, self.block_size, self.window = (
+            int(batch_size),
+            int(block_size),
+            int(window),
+        )
         self.whitening = None if whitening is None else read_whitening(whitening)
         self.shuffle, self.seed, self.drop_last = bool(shuffle), int(seed), bool(drop_last)
         self.pixel_scale, self.mask_factor = pixel_scale, mask_factor
@@ -168,13 +179,18 @@ class ShardBatches(Dataset):
     def _epoch_plan(self) -> tuple[np.ndarray, np.ndarray]:
         if self._plan is None or self._plan[0] != self.epoch:
             nb = len(self._block_len)
-            order = np.random.default_rng([self.seed, self.epoch]).permutation(nb) if self.shuffle else np.arange(nb)
+            order = (
+                np.random.default_rng([self.seed, self.epoch]).permutation(nb)
+                if self.shuffle
+                else np.arange(nb)
+            )
             ends = np.cumsum(self._block_len[order])
             self._plan = (self.epoch, order, ends)
         return self._plan[1], self._plan[2]
 
     def batch_rows(self, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(block, shard, row)`` of each image of batch ``b`` of the current epoch, in batch order."""
+        """``(block, shard, row)`` of each image of batch ``b`` of the current epoch, in batch
+        order."""
         if not 0 <= b < len(self):
             raise IndexError(f"batch index {b} out of range for {len(self)} batches")
         order, ends = self._epoch_plan()
@@ -233,9 +249,13 @@ class ShardBatches(Dataset):
         x = torch.from_numpy(images)
         if self.whitening is not None:
             x = preprocess(
-                x, torch.from_numpy(params["theta_e"]), torch.from_numpy(params["lens_x"]),
-                torch.from_numpy(params["lens_y"]), *self.whitening,
-                pixel_scale=self.pixel_scale, mask_factor=self.mask_factor,
+                x,
+                torch.from_numpy(params["theta_e"]),
+                torch.from_numpy(params["lens_x"]),
+                torch.from_numpy(params["lens_y"]),
+                *self.whitening,
+                pixel_scale=self.pixel_scale,
+                mask_factor=self.mask_factor,
             )
         out = {"x": x.unsqueeze(1), "gamma": torch.from_numpy(params["gamma_sub"])}
         for k in ("theta_e", "lens_x", "lens_y"):
@@ -249,18 +269,32 @@ def _worker_init(_worker_id: int) -> None:
     torch.set_num_threads(1)
 
 
-def make_loader(dataset: ShardBatches, *, start: int = 0, num_workers: int = 0, pin_memory: bool = False, prefetch_factor: int | None = None) -> DataLoader:
+def make_loader(
+    dataset: ShardBatches,
+    *,
+    start: int = 0,
+    num_workers: int = 0,
+    pin_memory: bool = False,
+    prefetch_factor: int | None = None,
+) -> DataLoader:
     """A ``DataLoader`` over batches ``start, start+1, …`` of the dataset's current epoch.
 
     The loader gets its own ``torch.Generator`` (seeded from the dataset's seed and epoch):
     creating an iterator then draws nothing from the global torch RNG, so a training run
     resumed from a checkpoint sees the same global random stream as an uninterrupted one.
     """
-    gen = torch.Generator().manual_seed(int(np.random.SeedSequence([dataset.seed, dataset.epoch]).generate_state(1)[0]))
+    gen = torch.Generator().manual_seed(
+        int(np.random.SeedSequence([dataset.seed, dataset.epoch]).generate_state(1)[0])
+    )
     kwargs = {"generator": gen}
     if num_workers > 0:
         kwargs.update(worker_init_fn=_worker_init, prefetch_factor=prefetch_factor or 2)
     return DataLoader(
-        dataset, batch_size=None, shuffle=False, sampler=range(int(start), len(dataset)),
-        num_workers=num_workers, pin_memory=pin_memory, **kwargs,
+        dataset,
+        batch_size=None,
+        shuffle=False,
+        sampler=range(int(start), len(dataset)),
+        num_workers=num_workers,
+        pin_memory=pin_memory,
+        **kwargs,
     )

@@ -13,8 +13,8 @@ import torch
 
 from subslope.devices import pick_device
 from subslope.nre.preprocess import preprocess, read_whitening
-from subslope.stats.intervals import check_grid
 from subslope.physics.instrument import PIXEL_SCALE
+from subslope.stats.intervals import check_grid
 
 __all__ = ["log_ratio_profiles"]
 
@@ -62,7 +62,10 @@ def log_ratio_profiles(
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     mean, std = read_whitening(whitening)
     n = len(images)
-    te, cx, cy = (np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy() for v in (theta_e, lens_x, lens_y))
+    te, cx, cy = (
+        np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy()
+        for v in (theta_e, lens_x, lens_y)
+    )
     dev = pick_device(device)
     model = model.to(dev).eval()
     dtype = next(model.parameters()).dtype
@@ -73,8 +76,19 @@ def log_ratio_profiles(
             e = min(s + int(batch_size), n)
             x = np.asarray(images[s:e], dtype=np.float32)
             if x.ndim != 3:
-                raise ValueError(f"images must have shape (B, H, W), got a batch of shape {x.shape}")
-            x = preprocess(x, te[s:e], cx[s:e], cy[s:e], mean, std, pixel_scale=pixel_scale, mask_factor=mask_factor)
+                raise ValueError(
+                    f"images must have shape (B, H, W), got a batch of shape {x.shape}"
+                )
+            x = preprocess(
+                x,
+                te[s:e],
+                cx[s:e],
+                cy[s:e],
+                mean,
+                std,
+                pixel_scale=pixel_scale,
+                mask_factor=mask_factor,
+            )
             xt = torch.as_tensor(x, dtype=dtype, device=dev)
             out[s:e] = model.log_ratio_grid(xt, grid_t).double().cpu().numpy()
     return out

@@ -43,7 +43,9 @@ __all__ = ["nre_loss", "negative_indices", "NRELoss"]
 _NEGATIVES = ("roll", "derangement")
 
 
-def negative_indices(batch: int, mode: str = "roll", *, generator: torch.Generator | None = None, device=None) -> torch.Tensor:
+def negative_indices(
+    batch: int, mode: str = "roll", *, generator: torch.Generator | None = None, device=None
+) -> torch.Tensor:
     """Index ``π`` of the γ paired with each image in the negatives: ``γ_neg = γ[π]``.
 
     ``π(j) ≠ j`` for every ``j`` when ``batch ≥ 2``.
@@ -55,13 +57,17 @@ def negative_indices(batch: int, mode: str = "roll", *, generator: torch.Generat
     idx = torch.arange(batch, device=device)
     if mode == "roll":
         return torch.roll(idx, 1)
-    order = torch.randperm(batch, generator=generator, device=generator.device if generator is not None else "cpu").to(device or "cpu")
+    order = torch.randperm(
+        batch, generator=generator, device=generator.device if generator is not None else "cpu"
+    ).to(device or "cpu")
     pi = torch.empty_like(order)
     pi[order] = torch.roll(order, 1)  # image order[k] gets γ of order[k-1]
     return pi
 
 
-def nre_loss(log_r_pos: torch.Tensor, log_r_neg: torch.Tensor, *, lmbda: float = 0.0) -> torch.Tensor:
+def nre_loss(
+    log_r_pos: torch.Tensor, log_r_neg: torch.Tensor, *, lmbda: float = 0.0
+) -> torch.Tensor:
     """Balanced BCE on logits of positive and negative pairs (plus the BNRE penalty if λ > 0)."""
     l1 = -F.logsigmoid(log_r_pos).mean()
     l0 = -F.logsigmoid(-log_r_neg).mean()
@@ -79,7 +85,14 @@ class NRELoss(nn.Module):
     negatives), so a :class:`~subslope.nre.models.RatioEstimator` runs its trunk once.
     """
 
-    def __init__(self, estimator: nn.Module, *, lmbda: float = 0.0, negatives: str = "roll", generator: torch.Generator | None = None):
+    def __init__(
+        self,
+        estimator: nn.Module,
+        *,
+        lmbda: float = 0.0,
+        negatives: str = "roll",
+        generator: torch.Generator | None = None,
+    ):
         super().__init__()
         if negatives not in _NEGATIVES:
             raise ValueError(f"negatives must be one of {list(_NEGATIVES)}, got {negatives!r}")
@@ -91,6 +104,8 @@ class NRELoss(nn.Module):
         self.generator = generator
 
     def forward(self, gamma: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        pi = negative_indices(gamma.shape[0], self.negatives, generator=self.generator, device=gamma.device)
+        pi = negative_indices(
+            gamma.shape[0], self.negatives, generator=self.generator, device=gamma.device
+        )
         log_r = self.estimator(torch.stack((gamma, gamma[pi])), x)
         return nre_loss(log_r[0], log_r[1], lmbda=self.lmbda)

@@ -133,7 +133,9 @@ class Bottleneck(nn.Module):
 class ResNetTrunk(nn.Module):
     """ResNet feature extractor ``(B, C_in, H, W) → (B, out_features)``."""
 
-    def __init__(self, depth: int = 18, width: float = 1.0, stem: str = "imagenet", in_channels: int = 1):
+    def __init__(
+        self, depth: int = 18, width: float = 1.0, stem: str = "imagenet", in_channels: int = 1
+    ):
         super().__init__()
         if depth not in _LAYOUTS:
             raise ValueError(f"arch.depth must be one of {sorted(_LAYOUTS)}, got {depth!r}")
@@ -153,7 +155,9 @@ class ResNetTrunk(nn.Module):
             )
         else:
             stride = 2 if stem == "compact" else 1
-            self.stem = nn.Sequential(_conv3(in_channels, c0, stride), nn.BatchNorm2d(c0), nn.ReLU(inplace=True))
+            self.stem = nn.Sequential(
+                _conv3(in_channels, c0, stride), nn.BatchNorm2d(c0), nn.ReLU(inplace=True)
+            )
         stages, cin = [], c0
         for i, n in enumerate(counts):
             planes = c0 * 2**i
@@ -239,12 +243,16 @@ class RatioEstimator(nn.Module):
                 return x[:, None], False
             if x.ndim == 4:
                 return x, False
-            raise ValueError(f"x must have shape (H, W), (B, H, W) or (B, 1, H, W), got {tuple(x.shape)}")
+            raise ValueError(
+                f"x must have shape (H, W), (B, H, W) or (B, 1, H, W), got {tuple(x.shape)}"
+            )
         if x.ndim == k:
             return x[None], True
         if x.ndim == k + 1:
             return x, False
-        raise ValueError(f"x must have {k} (one sample) or {k + 1} (batch) axes, got shape {tuple(x.shape)}")
+        raise ValueError(
+            f"x must have {k} (one sample) or {k + 1} (batch) axes, got shape {tuple(x.shape)}"
+        )
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         """Trunk features ``z`` of a batch ``(B, ...)`` → ``(B, C)``."""
@@ -252,7 +260,9 @@ class RatioEstimator(nn.Module):
 
     def head(self, z: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
         """Logits for features ``z (..., C)`` and ``gamma (...)`` (broadcast together)."""
-        g = (torch.as_tensor(gamma, dtype=z.dtype, device=z.device) - self.gamma_mean.to(z.dtype)) / self.gamma_std.to(z.dtype)
+        g = (
+            torch.as_tensor(gamma, dtype=z.dtype, device=z.device) - self.gamma_mean.to(z.dtype)
+        ) / self.gamma_std.to(z.dtype)
         shape = torch.broadcast_shapes(z.shape[:-1], g.shape)
         z = z.expand(*shape, z.shape[-1])
         g = g.expand(shape).unsqueeze(-1)
@@ -275,7 +285,9 @@ class RatioEstimator(nn.Module):
             return self.head(z[0], gamma)
         return self.head(z, gamma)
 
-    def log_ratio_grid(self, x: torch.Tensor, gammas: torch.Tensor, *, chunk: int | None = None) -> torch.Tensor:
+    def log_ratio_grid(
+        self, x: torch.Tensor, gammas: torch.Tensor, *, chunk: int | None = None
+    ) -> torch.Tensor:
         """``ln r̂(x_b|γ_g)`` for every image and every grid value: ``(B, G)`` (``(G,)`` unbatched).
 
         The trunk is evaluated once per image (in chunks of ``chunk`` images when given),
@@ -305,13 +317,17 @@ def _resolve_arch(arch: Mapping[str, Any] | None) -> dict[str, Any]:
         base.update(copy.deepcopy(PRESETS[preset]))
     unknown = set(arch) - set(DEFAULT_ARCH)
     if unknown:
-        raise ValueError(f"arch: unknown key(s) {sorted(unknown)}; allowed: {sorted(DEFAULT_ARCH) + ['preset']}")
+        raise ValueError(
+            f"arch: unknown key(s) {sorted(unknown)}; allowed: {sorted(DEFAULT_ARCH) + ['preset']}"
+        )
     base.update(arch)
     base["head"] = [int(h) for h in base["head"]]
     return base
 
 
-def build_model(arch: Mapping[str, Any] | None = None, *, gamma_mean: float = 0.0, gamma_std: float = 1.0) -> RatioEstimator:
+def build_model(
+    arch: Mapping[str, Any] | None = None, *, gamma_mean: float = 0.0, gamma_std: float = 1.0
+) -> RatioEstimator:
     """ResNet ratio estimator from a plain config dict.
 
     Keys (defaults in :data:`DEFAULT_ARCH`): ``depth`` (10, 18, 34, 50, 101), ``width``
@@ -320,7 +336,9 @@ def build_model(arch: Mapping[str, Any] | None = None, *, gamma_mean: float = 0.
     """
     a = _resolve_arch(arch)
     trunk = ResNetTrunk(a["depth"], a["width"], a["stem"], a["in_channels"])
-    model = RatioEstimator(trunk, trunk.out_features, a["head"], gamma_mean=gamma_mean, gamma_std=gamma_std)
+    model = RatioEstimator(
+        trunk, trunk.out_features, a["head"], gamma_mean=gamma_mean, gamma_std=gamma_std
+    )
     model.arch = a
     return model
 

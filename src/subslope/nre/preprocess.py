@@ -26,6 +26,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
+
 from subslope.physics.instrument import PIXEL_SCALE
 
 __all__ = ["preprocess", "read_whitening", "Whitening"]
@@ -54,7 +55,9 @@ def read_whitening(source) -> Whitening:
     elif isinstance(source, Sequence) and len(source) == 2:
         mean, std = source
     else:
-        raise ValueError(f"{where}: expected a JSON path, a mapping or a (mean, std) pair, got {source!r}")
+        raise ValueError(
+            f"{where}: expected a JSON path, a mapping or a (mean, std) pair, got {source!r}"
+        )
     mean, std = float(mean), float(std)
     if not (math.isfinite(mean) and math.isfinite(std) and std > 0):
         raise ValueError(f"{where}: need finite mean and std > 0, got mean={mean!r}, std={std!r}")

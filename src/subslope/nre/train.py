@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import csv
 import logging
-from dataclasses import dataclass, field
 import math
 import os
 import random
@@ -40,6 +39,7 @@ import sys
 import time
 from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,10 +50,10 @@ from tqdm.auto import tqdm
 from subslope.devices import pick_device
 
 from .data import ShardBatches, make_loader, read_labels
-from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
 from .loss import NRELoss
 from .models import RatioEstimator, build_model, model_card
 from .preprocess import read_whitening
+from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
 
 __all__ = ["resolve_config", "config_hash", "train", "load_estimator", "evaluate"]
 
@@ -76,7 +76,13 @@ def _rng_state() -> dict[str, Any]:
     py = random.getstate()
     state = {
         "torch": torch.get_rng_state(),
-        "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(cached)],
+        "numpy": [
+            name,
+            torch.from_numpy(keys.astype(np.int64)),
+            int(pos),
+            int(has_gauss),
+            float(cached),
+        ],
         "python": [py[0], list(py[1]), py[2]],
     }
     if torch.cuda.is_available():
@@ -113,7 +119,15 @@ def _write_log(history: Sequence[Mapping[str, Any]], path: Path) -> None:
 
 
 @torch.no_grad()
-def evaluate(model: RatioEstimator, dataset: ShardBatches, loss_fn: NRELoss, device: torch.device, *, num_workers: int = 0, amp_dtype=None) -> float:
+def evaluate(
+    model: RatioEstimator,
+    dataset: ShardBatches,
+    loss_fn: NRELoss,
+    device: torch.device,
+    *,
+    num_workers: int = 0,
+    amp_dtype=None,
+) -> float:
     """Mean NRE loss over a dataset (eval mode, file order, roll negatives)."""
     was_training = model.training
     model.eval()
@@ -122,8 +136,13 @@ def evaluate(model: RatioEstimator, dataset: ShardBatches, loss_fn: NRELoss, dev
         n = batch["x"].shape[0]
         if n < 2:
             continue
-        x, g = batch["x"].to(device, non_blocking=True), batch["gamma"].to(device, non_blocking=True)
-        ctx = torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext()
+        x, g = (
+            batch["x"].to(device, non_blocking=True),
+            batch["gamma"].to(device, non_blocking=True),
+        )
+        ctx = (
+            torch.autocast(device.type, dtype=amp_dtype) if amp_dtype is not None else nullcontext()
+        )
         with ctx:
             loss = loss_fn(g, x)
         total += float(loss) * n
@@ -176,7 +195,19 @@ def train(
     elif device.type == "cuda":
         torch.backends.cudnn.benchmark = True
     try:
-        return _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, last_path, best_path, device, amp_dtype)
+        return _train(
+            cfg,
+            chash,
+            train_shards,
+            val_shards,
+            whitening,
+            out_dir,
+            ckpt_dir,
+            last_path,
+            best_path,
+            device,
+            amp_dtype,
+        )
     finally:
         torch.use_deterministic_algorithms(prev_det)
         torch.backends.cudnn.benchmark = prev_bench
@@ -198,19 +229,36 @@ class _Run:
     amp_dtype: torch.dtype | None
     last_path: Path
     best_path: Path
-    state: dict[str, Any] = field(default_factory=lambda: {
-        "epoch": 0, "batch_in_epoch": 0, "step": 0, "best_val": math.inf, "bad_epochs": 0,
-        "history": [], "loss_sum": 0.0, "loss_count": 0, "train_seconds": 0.0, "finished": False,
-        "stop_reason": None,
-    })
+    state: dict[str, Any] = field(
+        default_factory=lambda: {
+            "epoch": 0,
+            "batch_in_epoch": 0,
+            "step": 0,
+            "best_val": math.inf,
+            "bad_epochs": 0,
+            "history": [],
+            "loss_sum": 0.0,
+            "loss_count": 0,
+            "train_seconds": 0.0,
+            "finished": False,
+            "stop_reason": None,
+        }
+    )
 
     def checkpoint(self) -> None:
-        _atomic_save({
-            "config": self.cfg, "config_hash": self.chash, "model": self.model.state_dict(),
-            "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(),
-            "scaler": self.scaler.state_dict() if self.scaler is not None else None,
-            "rng": _rng_state(), "state": self.state,
-        }, self.last_path)
+        _atomic_save(
+            {
+                "config": self.cfg,
+                "config_hash": self.chash,
+                "model": self.model.state_dict(),
+                "optimizer": self.opt.state_dict(),
+                "scheduler": self.sched.state_dict(),
+                "scaler": self.scaler.state_dict() if self.scaler is not None else None,
+                "rng": _rng_state(),
+                "state": self.state,
+            },
+            self.last_path,
+        )
 
 
 def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_path: Path) -> _Run:
@@ -218,7 +266,9 @@ def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_pa
     labels = read_labels(train_shards)
     gamma_mean, gamma_std = float(labels.mean()), float(labels.std())
     if not gamma_std > 0:
-        raise ValueError(f"training labels params/gamma_sub have zero spread (all {gamma_mean}); need varied γ")
+        raise ValueError(
+            f"training labels params/gamma_sub have zero spread (all {gamma_mean}); need varied γ"
+        )
     seed = int(cfg["seed"])
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
@@ -226,13 +276,33 @@ def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_pa
     model = build_model(cfg["arch"], gamma_mean=gamma_mean, gamma_std=gamma_std).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg["lr"], weight_decay=cfg["weight_decay"])
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
-        opt, mode="min", factor=cfg["lr_factor"], patience=cfg["lr_patience"], cooldown=cfg["lr_cooldown"],
-        threshold=cfg["min_delta"], threshold_mode="abs",
+        opt,
+        mode="min",
+        factor=cfg["lr_factor"],
+        patience=cfg["lr_patience"],
+        cooldown=cfg["lr_cooldown"],
+        threshold=cfg["min_delta"],
+        threshold_mode="abs",
     )
     scaler = torch.amp.GradScaler("cuda") if amp_dtype == torch.float16 else None
     loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives=cfg["negatives"])
-    val_loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives="roll")  # a fixed function of the weights
-    return _Run(cfg, chash, model, opt, sched, scaler, loss_fn, val_loss_fn, device, amp_dtype, last_path, best_path)
+    val_loss_fn = NRELoss(
+        model, lmbda=cfg["bnre_lambda"], negatives="roll"
+    )  # a fixed function of the weights
+    return _Run(
+        cfg,
+        chash,
+        model,
+        opt,
+        sched,
+        scaler,
+        loss_fn,
+        val_loss_fn,
+        device,
+        amp_dtype,
+        last_path,
+        best_path,
+    )
 
 
 def _resume(run: _Run, ckpt_dir) -> None:
@@ -243,9 +313,13 @@ def _resume(run: _Run, ckpt_dir) -> None:
     ck = torch.load(run.last_path, map_location=run.device, weights_only=True)
     cfg = run.cfg
     if ck["config_hash"] != run.chash:
-        changed = sorted(k for k in cfg if k not in RESUME_SAFE_KEYS and ck["config"].get(k) != cfg[k])
-        raise ValueError(f"checkpoint {run.last_path} was written with a different training config "
-                         f"(changed: {changed}); delete {ckpt_dir} to start afresh")
+        changed = sorted(
+            k for k in cfg if k not in RESUME_SAFE_KEYS and ck["config"].get(k) != cfg[k]
+        )
+        raise ValueError(
+            f"checkpoint {run.last_path} was written with a different training config "
+            f"(changed: {changed}); delete {ckpt_dir} to start afresh"
+        )
     run.model.load_state_dict(ck["model"])
     run.opt.load_state_dict(ck["optimizer"])
     run.sched.load_state_dict(ck["scheduler"])
@@ -255,15 +329,24 @@ def _resume(run: _Run, ckpt_dir) -> None:
     run.state.update(ck["state"])
     if run.state["finished"]:
         run.state["stop_reason"] = run.state.get("stop_reason") or "finished"
-    log.info("resumed from %s at epoch %d, batch %d, step %d", run.last_path, run.state["epoch"],
-             run.state["batch_in_epoch"], run.state["step"])
+    log.info(
+        "resumed from %s at epoch %d, batch %d, step %d",
+        run.last_path,
+        run.state["epoch"],
+        run.state["batch_in_epoch"],
+        run.state["step"],
+    )
 
 
 def _step(run: _Run, batch, pin: bool) -> int:
     """One optimiser step on ``batch``; returns the number of images."""
     x = batch["x"].to(run.device, non_blocking=pin)
     g = batch["gamma"].to(run.device, non_blocking=pin)
-    ctx = torch.autocast(run.device.type, dtype=run.amp_dtype) if run.amp_dtype is not None else nullcontext()
+    ctx = (
+        torch.autocast(run.device.type, dtype=run.amp_dtype)
+        if run.amp_dtype is not None
+        else nullcontext()
+    )
     with ctx:
         loss = run.loss_fn(g, x)
     run.opt.zero_grad(set_to_none=True)
@@ -276,7 +359,9 @@ def _step(run: _Run, batch, pin: bool) -> int:
         run.opt.step()
     lv = float(loss.detach())
     if not math.isfinite(lv):
-        raise FloatingPointError(f"training loss is {lv} at epoch {run.state['epoch']}, step {run.state['step']}")
+        raise FloatingPointError(
+            f"training loss is {lv} at epoch {run.state['epoch']}, step {run.state['step']}"
+        )
     n = x.shape[0]
     state = run.state
     state["loss_sum"] += lv * n
@@ -292,10 +377,20 @@ def _train_epoch(run: _Run, train_ds, max_steps) -> bool:
     pin = run.device.type == "cuda"
     epoch = state["epoch"]
     train_ds.set_epoch(epoch)
-    loader = make_loader(train_ds, start=state["batch_in_epoch"], num_workers=cfg["num_workers"], pin_memory=pin)
+    loader = make_loader(
+        train_ds, start=state["batch_in_epoch"], num_workers=cfg["num_workers"], pin_memory=pin
+    )
     t0 = time.perf_counter()
-    bar = tqdm(loader, total=len(train_ds), initial=state["batch_in_epoch"], desc=f"epoch {epoch}",
-               disable=not cfg["progress"], file=sys.stderr, dynamic_ncols=True, mininterval=2.0)
+    bar = tqdm(
+        loader,
+        total=len(train_ds),
+        initial=state["batch_in_epoch"],
+        desc=f"epoch {epoch}",
+        disable=not cfg["progress"],
+        file=sys.stderr,
+        dynamic_ncols=True,
+        mininterval=2.0,
+    )
     for batch in bar:
         _step(run, batch, pin)
         if state["step"] % 20 == 0:
@@ -307,8 +402,12 @@ def _train_epoch(run: _Run, train_ds, max_steps) -> bool:
             run.checkpoint()
         if stop:
             bar.close()
-            log.info("stopped at max_steps=%d (epoch %d, batch %d); call train() again to resume", max_steps, epoch,
-                     state["batch_in_epoch"])
+            log.info(
+                "stopped at max_steps=%d (epoch %d, batch %d); call train() again to resume",
+                max_steps,
+                epoch,
+                state["batch_in_epoch"],
+            )
             return True
     bar.close()
     state["train_seconds"] += time.perf_counter() - t0
@@ -321,27 +420,47 @@ def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
     cfg, state = run.cfg, run.state
     epoch = state["epoch"]
     tv = time.perf_counter()
-    val = evaluate(run.model, val_ds, run.val_loss_fn, run.device, num_workers=cfg["num_workers"],
-                   amp_dtype=run.amp_dtype)
+    val = evaluate(
+        run.model,
+        val_ds,
+        run.val_loss_fn,
+        run.device,
+        num_workers=cfg["num_workers"],
+        amp_dtype=run.amp_dtype,
+    )
     val_seconds = time.perf_counter() - tv
     lr = run.opt.param_groups[0]["lr"]
     run.sched.step(val)
     row = {
-        "epoch": epoch, "train_loss": state["loss_sum"] / max(state["loss_count"], 1), "val_loss": val, "lr": lr,
+        "epoch": epoch,
+        "train_loss": state["loss_sum"] / max(state["loss_count"], 1),
+        "val_loss": val,
+        "lr": lr,
         "seconds": state["train_seconds"] + val_seconds,
         "images_per_s": state["loss_count"] / max(state["train_seconds"], 1e-9),
     }
     state["history"].append(row)
-    log.info("epoch %d: train %.5f val %.5f lr %.2e (%.1f s, %.0f img/s)", epoch, row["train_loss"], val, lr,
-             row["seconds"], row["images_per_s"])
+    log.info(
+        "epoch %d: train %.5f val %.5f lr %.2e (%.1f s, %.0f img/s)",
+        epoch,
+        row["train_loss"],
+        val,
+        lr,
+        row["seconds"],
+        row["images_per_s"],
+    )
     if val < state["best_val"] - cfg["min_delta"]:
         state["best_val"], state["bad_epochs"] = val, 0
-        _atomic_save({"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path)
+        _atomic_save(
+            {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path
+        )
     else:
         state["bad_epochs"] += 1
         if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
             state["best_val"] = val
-            _atomic_save({"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path)
+            _atomic_save(
+                {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path
+            )
     state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
     if state["bad_epochs"] >= cfg["early_stop_patience"]:
         state["finished"], state["stop_reason"] = True, "early_stop"
@@ -357,35 +476,68 @@ def _write_model(run: _Run, whitening, out_dir: Path) -> Path:
     best = torch.load(run.best_path, map_location="cpu", weights_only=True)
     run.model.load_state_dict(best["model"])
     model_path = out_dir / "model.pt"
-    _atomic_save({
-        "format": "subslope.nre/1",
-        "model": {k: v.cpu() for k, v in run.model.state_dict().items()},
-        "model_card": model_card(run.model),
-        "whitening": {"mean": whitening[0], "std": whitening[1]},
-        "gamma_norm": {"mean": float(run.model.gamma_mean), "std": float(run.model.gamma_std)},
-        "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
-        "config": cfg,
-        "config_hash": run.chash,
-        "history": run.state["history"],
-        "best_epoch": int(best["epoch"]),
-        "best_val_loss": float(best["val_loss"]),
-        "stop_reason": run.state["stop_reason"],
-        "torch_version": str(torch.__version__),
-    }, model_path)
+    _atomic_save(
+        {
+            "format": "subslope.nre/1",
+            "model": {k: v.cpu() for k, v in run.model.state_dict().items()},
+            "model_card": model_card(run.model),
+            "whitening": {"mean": whitening[0], "std": whitening[1]},
+            "gamma_norm": {"mean": float(run.model.gamma_mean), "std": float(run.model.gamma_std)},
+            "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
+            "config": cfg,
+            "config_hash": run.chash,
+            "history": run.state["history"],
+            "best_epoch": int(best["epoch"]),
+            "best_val_loss": float(best["val_loss"]),
+            "stop_reason": run.state["stop_reason"],
+            "torch_version": str(torch.__version__),
+        },
+        model_path,
+    )
     return model_path
 
 
-def _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, last_path, best_path, device, amp_dtype):
+def _train(
+    cfg,
+    chash,
+    train_shards,
+    val_shards,
+    whitening,
+    out_dir,
+    ckpt_dir,
+    last_path,
+    best_path,
+    device,
+    amp_dtype,
+):
     run = _start(cfg, chash, train_shards, device, amp_dtype, last_path, best_path)
     _resume(run, ckpt_dir)
     state = run.state
-    train_ds = ShardBatches(train_shards, cfg["batch_size"], whitening, shuffle=True, seed=int(cfg["seed"]),
-                            block_size=cfg["block_size"], window=cfg["shuffle_window"], drop_last=True,
-                            pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
-    val_ds = ShardBatches(val_shards, cfg["val_batch_size"] or cfg["batch_size"], whitening, shuffle=False,
-                          pixel_scale=cfg["pixel_scale"], mask_factor=cfg["mask_factor"])
+    train_ds = ShardBatches(
+        train_shards,
+        cfg["batch_size"],
+        whitening,
+        shuffle=True,
+        seed=int(cfg["seed"]),
+        block_size=cfg["block_size"],
+        window=cfg["shuffle_window"],
+        drop_last=True,
+        pixel_scale=cfg["pixel_scale"],
+        mask_factor=cfg["mask_factor"],
+    )
+    val_ds = ShardBatches(
+        val_shards,
+        cfg["val_batch_size"] or cfg["batch_size"],
+        whitening,
+        shuffle=False,
+        pixel_scale=cfg["pixel_scale"],
+        mask_factor=cfg["mask_factor"],
+    )
     if len(train_ds) == 0:
-        raise ValueError(f"training shards hold {train_ds.n_images} images, fewer than one batch of {cfg['batch_size']}")
+        raise ValueError(
+            f"training shards hold {train_ds.n_images} images, fewer than one batch of "
+            f"{cfg['batch_size']}"
+        )
     max_steps = cfg["max_steps"]
     if max_steps is not None and state["step"] >= max_steps and not state["finished"]:
         return _summary(state, None, finished=False)
@@ -405,8 +557,12 @@ def _train(cfg, chash, train_shards, val_shards, whitening, out_dir, ckpt_dir, l
 
 def _summary(state, model_path, *, finished: bool) -> dict[str, Any]:
     return {
-        "finished": finished, "model": model_path, "epochs": state["epoch"], "step": state["step"],
-        "best_val_loss": state["best_val"], "stop_reason": state.get("stop_reason"),
+        "finished": finished,
+        "model": model_path,
+        "epochs": state["epoch"],
+        "step": state["step"],
+        "best_val_loss": state["best_val"],
+        "stop_reason": state.get("stop_reason"),
     }
 
 
@@ -419,7 +575,10 @@ def load_estimator(path, *, map_location="cpu") -> tuple[RatioEstimator, dict[st
     """
     payload = torch.load(path, map_location=map_location, weights_only=True)
     if payload.get("format") != "subslope.nre/1":
-        raise ValueError(f"{os.fspath(path)!r} is not a subslope estimator file (format {payload.get('format')!r})")
+        raise ValueError(
+            f"{os.fspath(path)!r} is not a subslope estimator file (format "
+            f"{payload.get('format')!r})"
+        )
     card = payload["model_card"]
     model = build_model(card["arch"], gamma_mean=card["gamma_mean"], gamma_std=card["gamma_std"])
     model.load_state_dict(payload["model"])

@@ -13,15 +13,30 @@ from typing import Any
 
 from subslope.config import schema_defaults
 
-__all__ = ["WORKFLOW_KEYS", "RESUME_SAFE_KEYS", "training_defaults", "resolve_config", "config_hash"]
+__all__ = [
+    "WORKFLOW_KEYS",
+    "RESUME_SAFE_KEYS",
+    "training_defaults",
+    "resolve_config",
+    "config_hash",
+]
 
 #: Keys of the config's ``training`` section that steer the workflow (where and with
 #: what resources the job runs), not the optimisation.
 WORKFLOW_KEYS = ("device", "threads", "gpus", "mem_mb", "runtime")
 
 #: Keys that may differ between an interrupted run and its resumption.
-RESUME_SAFE_KEYS = frozenset({"max_epochs", "early_stop_patience", "num_workers", "checkpoint_every", "max_steps",
-                              "progress", "val_batch_size"})
+RESUME_SAFE_KEYS = frozenset(
+    {
+        "max_epochs",
+        "early_stop_patience",
+        "num_workers",
+        "checkpoint_every",
+        "max_steps",
+        "progress",
+        "val_batch_size",
+    }
+)
 
 
 def training_defaults() -> dict[str, Any]:
@@ -46,21 +61,38 @@ def resolve_config(config: Mapping[str, Any] | None) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"training: unknown key(s) {sorted(unknown)}; allowed: {sorted(cfg)}")
     cfg.update(copy.deepcopy(config))
-    for key in ("batch_size", "max_epochs", "lr_patience", "lr_cooldown", "early_stop_patience", "block_size",
-                "shuffle_window"):
+    for key in (
+        "batch_size",
+        "max_epochs",
+        "lr_patience",
+        "lr_cooldown",
+        "early_stop_patience",
+        "block_size",
+        "shuffle_window",
+    ):
         v = cfg[key]
         low = 0 if key in ("lr_patience", "lr_cooldown") else 1
         if isinstance(v, bool) or not isinstance(v, int) or v < low:
             raise ValueError(f"training.{key} must be an integer >= {low}, got {v!r}")
     if cfg["batch_size"] < 2:
-        raise ValueError(f"training.batch_size must be >= 2 (negatives are formed within a batch), "
-                         f"got {cfg['batch_size']}")
+        raise ValueError(
+            f"training.batch_size must be >= 2 (negatives are formed within a batch), "
+            f"got {cfg['batch_size']}"
+        )
     if cfg["amp"] not in ("auto", "bf16", "fp16", "off"):
         raise ValueError(f"training.amp must be one of auto, bf16, fp16, off; got {cfg['amp']!r}")
-    if not (cfg["lr"] > 0 and cfg["weight_decay"] >= 0 and 0 < cfg["lr_factor"] < 1 and cfg["min_delta"] >= 0):
-        raise ValueError("training: need lr > 0, weight_decay >= 0, 0 < lr_factor < 1, min_delta >= 0; got "
-                         f"lr={cfg['lr']!r}, weight_decay={cfg['weight_decay']!r}, lr_factor={cfg['lr_factor']!r}, "
-                         f"min_delta={cfg['min_delta']!r}")
+    if not (
+        cfg["lr"] > 0
+        and cfg["weight_decay"] >= 0
+        and 0 < cfg["lr_factor"] < 1
+        and cfg["min_delta"] >= 0
+    ):
+        raise ValueError(
+            "training: need lr > 0, weight_decay >= 0, 0 < lr_factor < 1, min_delta >= 0; got "
+            f"lr={cfg['lr']!r}, weight_decay={cfg['weight_decay']!r}, "
+            f"lr_factor={cfg['lr_factor']!r}, "
+            f"min_delta={cfg['min_delta']!r}"
+        )
     return cfg
 
 

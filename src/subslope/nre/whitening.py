@@ -55,7 +55,11 @@ class Moments:
             return other
         n = self.n + other.n
         delta = other.mean - self.mean
-        return Moments(n, self.mean + delta * other.n / n, self.m2 + other.m2 + delta * delta * self.n * other.n / n)
+        return Moments(
+            n,
+            self.mean + delta * other.n / n,
+            self.m2 + other.m2 + delta * delta * self.n * other.n / n,
+        )
 
     @property
     def var(self) -> float:
@@ -66,7 +70,9 @@ class Moments:
         return float(np.sqrt(self.var))
 
 
-def pixel_statistics(paths: Sequence[str | os.PathLike[str]], *, chunk_images: int = 256) -> Moments:
+def pixel_statistics(
+    paths: Sequence[str | os.PathLike[str]], *, chunk_images: int = 256
+) -> Moments:
     """Moments of all pixels of the ``images`` of the given shards (read in chunks)."""
     if chunk_images < 1:
         raise ValueError(f"chunk_images = {chunk_images!r} must be >= 1")
@@ -75,12 +81,16 @@ def pixel_statistics(paths: Sequence[str | os.PathLike[str]], *, chunk_images: i
         with open_shard(path) as shard:
             data = shard.images
             for start in range(0, data.shape[0], chunk_images):
-                total = total.merge(Moments.of(data[start:start + chunk_images]))
+                total = total.merge(Moments.of(data[start : start + chunk_images]))
     return total
 
 
-def compute_whitening(paths: Sequence[str | os.PathLike[str]], out_path: str | os.PathLike[str], *,
-                      chunk_images: int = 256) -> dict:
+def compute_whitening(
+    paths: Sequence[str | os.PathLike[str]],
+    out_path: str | os.PathLike[str],
+    *,
+    chunk_images: int = 256,
+) -> dict:
     """Write the whitening JSON of the shards ``paths`` and return its content.
 
     Keys: ``format``, ``mean``, ``std``, ``n_pixels``, ``n_images`` and ``shards`` (path,
@@ -90,15 +100,23 @@ def compute_whitening(paths: Sequence[str | os.PathLike[str]], out_path: str | o
         raise ValueError("compute_whitening needs at least one shard")
     m = pixel_statistics(paths, chunk_images=chunk_images)
     if not (m.n and np.isfinite(m.mean) and m.std > 0):
-        raise ValueError(f"degenerate pixel statistics of {list(map(str, paths))}: mean {m.mean}, std {m.std}")
+        raise ValueError(
+            f"degenerate pixel statistics of {list(map(str, paths))}: mean {m.mean}, std {m.std}"
+        )
     n_images = 0
     shards = []
     for p in paths:
         with open_shard(p) as s:
             n_images += len(s)
         shards.append({"path": str(p), "sha256": file_sha256(p), "bytes": Path(p).stat().st_size})
-    result = {"format": WHITENING_FORMAT, "mean": m.mean, "std": m.std, "n_pixels": m.n,
-              "n_images": n_images, "shards": shards}
+    result = {
+        "format": WHITENING_FORMAT,
+        "mean": m.mean,
+        "std": m.std,
+        "n_pixels": m.n,
+        "n_images": n_images,
+        "shards": shards,
+    }
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f"{out_path.name}.tmp-{os.getpid()}")

@@ -36,8 +36,6 @@ __all__ = [
 DM14_H = 0.7
 
 
-
-
 def dutton_maccio_c200(m200, z, h: float = DM14_H) -> np.ndarray:
     """Median c200 of Dutton & Macciò (2014) for ``m200`` (M_sun, physical, 200 rho_crit)
     at redshift ``z`` (> 0). ``h`` sets the pivot mass 1e12/h M_sun (default 0.7).

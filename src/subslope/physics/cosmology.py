@@ -138,9 +138,7 @@ def lens_distances(z_lens, z_source, cosmo=None) -> tuple[np.ndarray, np.ndarray
     z_lens = _check_z("z_lens", z_lens)
     z_source = _check_z("z_source", z_source)
     if np.any(z_source <= z_lens):
-        raise ValueError(
-            f"z_source must be > z_lens; got z_lens={z_lens}, z_source={z_source}"
-        )
+        raise ValueError(f"z_source must be > z_lens; got z_lens={z_lens}, z_source={z_source}")
     d_l = angular_diameter_distance(z_lens, cosmo)
     d_s = angular_diameter_distance(z_source, cosmo)
     d_ls = angular_diameter_distance_z1z2(z_lens, z_source, cosmo)

@@ -13,6 +13,7 @@ values exactly for linear functions, and the midpoint-rule pixel average otherwi
 from __future__ import annotations
 
 import torch
+
 from subslope.physics.instrument import PIXEL_SCALE
 
 __all__ = ["axis_coordinates", "pixel_grid", "bin_supersampled"]

@@ -114,7 +114,9 @@ def _read_psf_library(path) -> tuple[np.ndarray, int, int]:
     return data, nx, ny
 
 
-def degrade_psf(psf_super: np.ndarray | torch.Tensor, factor: int, method: str = "sum") -> np.ndarray:
+def degrade_psf(
+    psf_super: np.ndarray | torch.Tensor, factor: int, method: str = "sum"
+) -> np.ndarray:
     """Degrade an odd, centred supersampled PSF by an integer ``factor``.
 
     Output pixel ``m`` is centred on supersampled pixel ``c + factor·m`` (c = centre);
@@ -201,10 +203,17 @@ def load_empirical_psf(
         psf = fix(data[k])
     kern = degrade_psf(psf, supersampling, method)
     if out_size is not None:
-        if isinstance(out_size, bool) or not isinstance(out_size, int) or out_size < 1 or out_size % 2 == 0:
+        if (
+            isinstance(out_size, bool)
+            or not isinstance(out_size, int)
+            or out_size < 1
+            or out_size % 2 == 0
+        ):
             raise ValueError(f"out_size must be a positive odd integer, got {out_size!r}")
         if out_size > kern.shape[0]:
-            raise ValueError(f"out_size={out_size} exceeds the available kernel size {kern.shape[0]}")
+            raise ValueError(
+                f"out_size={out_size} exceeds the available kernel size {kern.shape[0]}"
+            )
         cut = (kern.shape[0] - out_size) // 2
         kern = kern[cut : kern.shape[0] - cut, cut : kern.shape[0] - cut]
     total = kern.sum()
@@ -255,7 +264,9 @@ def psf_fwhm(kernel, pixel_scale: float = PIXEL_SCALE, upsample: int = 8) -> flo
     the simulation.
     """
     k = torch.as_tensor(kernel, dtype=torch.float64)
-    up = F.interpolate(k[None, None], scale_factor=upsample, mode="bilinear", align_corners=False)[0, 0]
+    up = F.interpolate(k[None, None], scale_factor=upsample, mode="bilinear", align_corners=False)[
+        0, 0
+    ]
     area = (up >= 0.5 * up.max()).sum().item() * (pixel_scale / upsample) ** 2
     return 2.0 * math.sqrt(area / math.pi)
 
@@ -322,8 +333,14 @@ class Instrument:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if not self.read_noise >= 0:
             raise ValueError(f"read_noise must be >= 0 e-, got {self.read_noise!r}")
-        if isinstance(self.num_exposures, bool) or not isinstance(self.num_exposures, int) or self.num_exposures < 1:
-            raise ValueError(f"num_exposures must be a positive integer, got {self.num_exposures!r}")
+        if (
+            isinstance(self.num_exposures, bool)
+            or not isinstance(self.num_exposures, int)
+            or self.num_exposures < 1
+        ):
+            raise ValueError(
+                f"num_exposures must be a positive integer, got {self.num_exposures!r}"
+            )
 
     @property
     def total_exposure_time(self) -> float:
@@ -333,7 +350,9 @@ class Instrument:
     @property
     def sky_per_pixel(self) -> float:
         """Sky level, e⁻/s per pixel."""
-        return 10.0 ** (-0.4 * (self.sky_brightness - self.magnitude_zero_point)) * self.pixel_scale**2
+        return (
+            10.0 ** (-0.4 * (self.sky_brightness - self.magnitude_zero_point)) * self.pixel_scale**2
+        )
 
     @property
     def background_sigma(self) -> float:
@@ -344,7 +363,9 @@ class Instrument:
     def noise_sigma_map(self, image: torch.Tensor) -> torch.Tensor:
         return noise_sigma_map(image, self)
 
-    def add_noise(self, image: torch.Tensor, generator=None, *, poisson: str = "exact") -> torch.Tensor:
+    def add_noise(
+        self, image: torch.Tensor, generator=None, *, poisson: str = "exact"
+    ) -> torch.Tensor:
         return add_noise(image, generator, instrument=self, poisson=poisson)
 
 
@@ -353,7 +374,9 @@ def noise_sigma_map(image: torch.Tensor, instrument: Instrument | None = None) -
     inst = instrument or Instrument()
     image = torch.as_tensor(image)
     t = inst.total_exposure_time
-    var_counts = image.clamp(min=0.0) * t + inst.sky_per_pixel * t + inst.num_exposures * inst.read_noise**2
+    var_counts = (
+        image.clamp(min=0.0) * t + inst.sky_per_pixel * t + inst.num_exposures * inst.read_noise**2
+    )
     return torch.sqrt(var_counts) / t
 
 

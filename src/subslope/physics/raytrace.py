@@ -25,7 +25,8 @@ In a flat universe ``chi_j - chi_i = T_ij = (1 + z_j) D_A(z_i, z_j)`` (the comov
 transverse distance lenstronomy steps with).  It is evaluated with the O(n)
 recursion (ray position at the previous plane ``p`` and ray direction ``a``)::
 
-    theta_j = (chi_p / chi_j) theta_p + ((chi_j - chi_p) / chi_j) a,   a <- a - alpha_hat_j(theta_j),
+    theta_j = (chi_p / chi_j) theta_p + ((chi_j - chi_p) / chi_j) a,   a <- a -
+    alpha_hat_j(theta_j),
 
 starting from ``chi_p = 0``, ``a = theta``; the coefficients are exactly ``(0, 1)``
 for the first plane and ``(1, 0)`` for a plane at the same redshift as the previous
@@ -87,7 +88,9 @@ def deflection_sum(x: Tensor, y: Tensor, deflectors: Sequence[Deflector]) -> tup
     total: tuple[Tensor, Tensor] | None = None
     for k, d in enumerate(deflectors):
         if not callable(d):
-            raise ValueError(f"deflectors[{k}] must be callable (x, y) -> (ax, ay), got {type(d).__name__}")
+            raise ValueError(
+                f"deflectors[{k}] must be callable (x, y) -> (ax, ay), got {type(d).__name__}"
+            )
         dx, dy = d(x, y)
         total = (dx, dy) if total is None else (total[0] + dx, total[1] + dy)
     if total is None:
@@ -185,8 +188,15 @@ def _to_np(v, name: str) -> np.ndarray:
     return arr
 
 
-def plane_geometry(z_planes: Sequence, z_source, *, active: Sequence | None = None,
-                   cosmo=None, z_convention=None, beyond_source: str = "raise") -> PlaneGeometry:
+def plane_geometry(
+    z_planes: Sequence,
+    z_source,
+    *,
+    active: Sequence | None = None,
+    cosmo=None,
+    z_convention=None,
+    beyond_source: str = "raise",
+) -> PlaneGeometry:
     """Distance factors for planes at ``z_planes`` (each scalar or ``(B,)``), in the
     given order, for sources at ``z_source`` (scalar or ``(B,)``).
 
@@ -197,7 +207,9 @@ def plane_geometry(z_planes: Sequence, z_source, *, active: Sequence | None = No
     cosmo = _default_cosmo() if cosmo is None else cosmo
     ok0 = float(getattr(cosmo, "Ok0", 0.0))
     if abs(ok0) > 1e-12:
-        raise ValueError(f"cosmo must be flat for the comoving multi-plane recursion, got Ok0={ok0}")
+        raise ValueError(
+            f"cosmo must be flat for the comoving multi-plane recursion, got Ok0={ok0}"
+        )
     if beyond_source not in ("raise", "skip"):
         raise ValueError(f"beyond_source must be 'raise' or 'skip', got {beyond_source!r}")
     n = len(z_planes)
@@ -207,13 +219,17 @@ def plane_geometry(z_planes: Sequence, z_source, *, active: Sequence | None = No
     zs = _to_np(z_source, "z_source").astype(np.float64)
     zc = zs if z_convention is None else _to_np(z_convention, "z_convention").astype(np.float64)
     zp = [_to_np(z, f"planes[{j}].z").astype(np.float64) for j, z in enumerate(z_planes)]
-    ac = [np.ones((), bool) if a is None else _to_np(a, f"planes[{j}].active").astype(bool)
-          for j, a in enumerate(act_in)]
+    ac = [
+        np.ones((), bool) if a is None else _to_np(a, f"planes[{j}].active").astype(bool)
+        for j, a in enumerate(act_in)
+    ]
     try:
         shapes = [zs.shape, zc.shape, *[z.shape for z in zp], *[a.shape for a in ac]]
         b = np.broadcast_shapes(*shapes)
     except ValueError:
-        raise ValueError(f"per-system redshifts/active masks have incompatible shapes {shapes}") from None
+        raise ValueError(
+            f"per-system redshifts/active masks have incompatible shapes {shapes}"
+        ) from None
     nb = b[0] if b else 1
     zs = np.broadcast_to(zs, (nb,))
     zc = np.broadcast_to(zc, (nb,))
@@ -231,7 +247,8 @@ def plane_geometry(z_planes: Sequence, z_source, *, active: Sequence | None = No
             raise ValueError(
                 f"planes[{j}].z = {zp_arr[j, bb]} is not in front of the source (z_source = "
                 f"{zs[bb]}, z_convention = {zc[bb]}) for system {bb}; planes must satisfy "
-                "z < z_source (use beyond_source='skip' or active masks to drop them)")
+                "z < z_source (use beyond_source='skip' or active masks to drop them)"
+            )
         act &= ~behind
     chi = comoving_distance(zp_arr, cosmo) if n else zp_arr
     chi_s = comoving_distance(zs, cosmo)
@@ -248,7 +265,8 @@ def plane_geometry(z_planes: Sequence, z_source, *, active: Sequence | None = No
             raise ValueError(
                 f"planes[{j}].z = {zp_arr[j, bb]} lies in front of the previous active plane "
                 f"(z = {z_p[bb]}) for system {bb}; order the planes by redshift for every "
-                "system (duplicate per-system-ordered planes with complementary active masks)")
+                "system (duplicate per-system-ordered planes with complementary active masks)"
+            )
         c_prev[j] = np.where(a, chi_p / chi[j], 1.0)
         c_dir[j] = np.where(a, (chi[j] - chi_p) / chi[j], 0.0)
         to_phys[j] = np.where(a, chi_c / np.where(a, chi_c - chi[j], 1.0), 0.0)
@@ -264,9 +282,16 @@ def _is_scalar(z) -> bool:
     return (isinstance(z, Tensor) and z.dim() == 0) or np.ndim(z) == 0
 
 
-def multi_plane_ray_shoot(x: Tensor, y: Tensor, planes: Sequence[Plane], z_source, *,
-                          cosmo=None, z_convention=None,
-                          beyond_source: str = "raise") -> tuple[Tensor, Tensor]:
+def multi_plane_ray_shoot(
+    x: Tensor,
+    y: Tensor,
+    planes: Sequence[Plane],
+    z_source,
+    *,
+    cosmo=None,
+    z_convention=None,
+    beyond_source: str = "raise",
+) -> tuple[Tensor, Tensor]:
     """Multi-plane lens equation: image-plane ``(x, y)`` [arcsec] → source ``(beta_x, beta_y)``.
 
     Parameters
@@ -287,28 +312,36 @@ def multi_plane_ray_shoot(x: Tensor, y: Tensor, planes: Sequence[Plane], z_sourc
     planes = list(planes)
     for j, p in enumerate(planes):
         if not isinstance(p, Plane):
-            raise ValueError(f"planes[{j}] must be a subslope.physics.raytrace.Plane, got {type(p).__name__}")
+            raise ValueError(
+                f"planes[{j}] must be a subslope.physics.raytrace.Plane, got {type(p).__name__}"
+            )
     if all(_is_scalar(p.z) for p in planes):
         planes = sorted(planes, key=lambda p: float(p.z))
-    geom = plane_geometry([p.z for p in planes], z_source, active=[p.active for p in planes],
-                          cosmo=cosmo, z_convention=z_convention, beyond_source=beyond_source)
+    geom = plane_geometry(
+        [p.z for p in planes],
+        z_source,
+        active=[p.active for p in planes],
+        cosmo=cosmo,
+        z_convention=z_convention,
+        beyond_source=beyond_source,
+    )
 
     def t(a: np.ndarray) -> Tensor:
         return torch.as_tensor(a, dtype=x.dtype, device=x.device)[:, None]
 
     zero = torch.zeros((), dtype=x.dtype, device=x.device)
-    px, py = x, y          # angular position at the previous active plane
-    dirx, diry = x, y      # ray direction (physical angle), starts as theta
-    sx = sy = None         # sum of reduced deflections weighted to the source
+    px, py = x, y  # angular position at the previous active plane
+    dirx, diry = x, y  # ray direction (physical angle), starts as theta
+    sx = sy = None  # sum of reduced deflections weighted to the source
     n = len(planes)
     for j, plane in enumerate(planes):
         act = geom.active[j]
         if not act.any():
             continue
         if np.all(geom.c_prev[j] == 0.0) and np.all(geom.c_dir[j] == 1.0):
-            tx, ty = dirx, diry                      # first plane: theta_j = theta exactly
+            tx, ty = dirx, diry  # first plane: theta_j = theta exactly
         elif np.all(geom.c_prev[j] == 1.0) and np.all(geom.c_dir[j] == 0.0):
-            tx, ty = px, py                          # same redshift as previous plane
+            tx, ty = px, py  # same redshift as previous plane
         else:
             cp, cd = t(geom.c_prev[j]), t(geom.c_dir[j])
             tx, ty = cp * px + cd * dirx, cp * py + cd * diry
@@ -323,7 +356,7 @@ def multi_plane_ray_shoot(x: Tensor, y: Tensor, planes: Sequence[Plane], z_sourc
             ax_s, ay_s = ax, ay
         sx = ax_s if sx is None else sx + ax_s
         sy = ay_s if sy is None else sy + ay_s
-        if j < n - 1:                                # direction needed by later planes only
+        if j < n - 1:  # direction needed by later planes only
             f = t(geom.to_physical[j])
             dirx, diry = dirx - f * ax, diry - f * ay
         px, py = tx, ty

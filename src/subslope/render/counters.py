@@ -4,7 +4,8 @@ Every step the renderer evaluates (one count per sub-batch that ran it) incremen
 :data:`STEP_COUNTS`: ``main_lens``, ``shear``, ``multipoles``, ``subhalos`` (population
 pass incl. its sheet), ``los`` (one per line-of-sight plane copy), ``split`` (a
 population summed by the near/far split), ``split_rough_tiles`` (tiles of a split
-pass that get the exact far field), ``multi_plane``, ``single_plane``, ``lens_light``, ``source_sersic``,
+pass that get the exact far field), ``multi_plane``, ``single_plane``, ``lens_light``,
+``source_sersic``,
 ``source_multi_sersic`` (plus ``source_component``, one per multi-Sérsic component
 evaluated), ``source_pixelated``, ``supersample_bin``, ``psf``. A component that a
 scene does not need is never evaluated, so its count stays 0.

@@ -16,8 +16,14 @@ from typing import Any
 
 import torch
 
-from subslope.physics.pairs.sums import (circle_peaks, direct_sums, direct_sums_few, far_sums, few_sums_with_sheet,
-                                         near_tile_sums)
+from subslope.physics.pairs.sums import (
+    circle_peaks,
+    direct_sums,
+    direct_sums_few,
+    far_sums,
+    few_sums_with_sheet,
+    near_tile_sums,
+)
 from subslope.render.settings import RenderSettings
 
 __all__ = ["FEW_MEMBERS", "Kernels", "clear_cache", "kernels_for"]
@@ -27,8 +33,14 @@ log = logging.getLogger(__name__)
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
 _MAX_KERNEL_GRAPHS = 64
-_KERNEL_FUNCTIONS = {"direct": direct_sums, "few": direct_sums_few, "few_sheet": few_sums_with_sheet,
-                     "far": far_sums, "near": near_tile_sums, "peaks": circle_peaks}
+_KERNEL_FUNCTIONS = {
+    "direct": direct_sums,
+    "few": direct_sums_few,
+    "few_sheet": few_sums_with_sheet,
+    "far": far_sums,
+    "near": near_tile_sums,
+    "peaks": circle_peaks,
+}
 #: Populations of fewer members than this are summed by ``direct_sums_few`` (members
 #: on the outer axis) instead of ``direct_sums`` (members vectorised).
 FEW_MEMBERS = 32
@@ -67,7 +79,9 @@ def _compiled_or_eager(name: str, device: torch.device):
         try:
             return compiled(*args)
         except Exception as exc:  # pragma: no cover - depends on the toolchain
-            log.warning("torch.compile of the %s population kernel failed (%s); using eager", name, exc)
+            log.warning(
+                "torch.compile of the %s population kernel failed (%s); using eager", name, exc
+            )
             _COMPILE_FAILED.add(key)
             return fn(*args)
 
@@ -81,10 +95,22 @@ def kernels_for(settings: RenderSettings, device: torch.device) -> Kernels:
     if want and device.type == "cpu" and shutil.which("gcc") is None and shutil.which("cc") is None:
         want = False
     if not want:
-        return Kernels(direct_sums, direct_sums_few, few_sums_with_sheet, far_sums, near_tile_sums, circle_peaks,
-                        False)
-    return Kernels(*(_compiled_or_eager(n, device) for n in ("direct", "few", "few_sheet", "far", "near", "peaks")),
-                    True)
+        return Kernels(
+            direct_sums,
+            direct_sums_few,
+            few_sums_with_sheet,
+            far_sums,
+            near_tile_sums,
+            circle_peaks,
+            False,
+        )
+    return Kernels(
+        *(
+            _compiled_or_eager(n, device)
+            for n in ("direct", "few", "few_sheet", "far", "near", "peaks")
+        ),
+        True,
+    )
 
 
 def clear_cache() -> None:

@@ -7,7 +7,8 @@ the partition of unity of :func:`subslope.physics.pairs.sums.split_weight`:
 .. math::
 
     \alpha_i = \underbrace{\alpha_i\,W(|x - c_i| / r_{c,i})}_{\text{far: smooth everywhere}}
-             + \underbrace{\alpha_i\,[1 - W(|x - c_i| / r_{c,i})]}_{\text{near: zero beyond } r_{c,i}},
+             + \underbrace{\alpha_i\,[1 - W(|x - c_i| / r_{c,i})]}_{\text{near: zero beyond }
+             r_{c,i}},
 
 the particle–particle/particle–mesh idea of N-body codes (Hockney & Eastwood 1988,
 ch. 8) with a compactly supported near part.
@@ -57,8 +58,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 import torch
@@ -66,8 +67,21 @@ from torch import Tensor
 
 from subslope.render.counters import count_step
 
-__all__ = ["GridBlock", "RHO_LADDER", "ERROR_CONSTANTS", "EDGE_ERROR_CONSTANTS", "interpolation_matrix", "node_indices", "member_rungs",
-           "split_pass", "TILE", "constant_class", "near_pairs", "near_on_tiles", "far_on_tiles"]
+__all__ = [
+    "GridBlock",
+    "RHO_LADDER",
+    "ERROR_CONSTANTS",
+    "EDGE_ERROR_CONSTANTS",
+    "interpolation_matrix",
+    "node_indices",
+    "member_rungs",
+    "split_pass",
+    "TILE",
+    "constant_class",
+    "near_pairs",
+    "near_on_tiles",
+    "far_on_tiles",
+]
 
 
 @dataclass(frozen=True)
@@ -101,7 +115,7 @@ def _interpolation_matrix_np(m: int, nodes: tuple[int, ...], order: int) -> np.n
         # the p nodes around i (centred stencil, shifted at the edges)
         k = int(np.searchsorted(t, i, side="right")) - p // 2
         k = min(max(k, 0), n - p)
-        st = t[k:k + p]
+        st = t[k : k + p]
         for a in range(p):
             others = np.delete(st, a)
             L[i, k + a] = np.prod((i - others) / (st[a] - others))
@@ -132,12 +146,18 @@ def _load_error_constants() -> tuple[dict, dict]:
     path = importlib_resources.files("subslope") / "render" / "split_constants.json"
     doc = json.loads(path.read_text(encoding="utf-8"))
     if tuple(doc["rho_ladder"]) != RHO_LADDER or tuple(doc["epl_gamma_edges"]) != EPL_GAMMA_EDGES:
-        raise RuntimeError(f"{path}: measured on another rho ladder or gamma classes than "
-                           "subslope.render.nearfar uses; rerun benchmarks/split_constants.py --out")
+        raise RuntimeError(
+            f"{path}: measured on another rho ladder or gamma classes than "
+            "subslope.render.nearfar uses; rerun benchmarks/split_constants.py --out"
+        )
 
     def tables(where: str) -> dict[str, dict[int, tuple[tuple[float, ...], ...]]]:
-        return {profile: {int(order): tuple(tuple(row) for row in rows) for order, rows in by_order.items()}
-                for profile, by_order in doc[where].items()}
+        return {
+            profile: {
+                int(order): tuple(tuple(row) for row in rows) for order, rows in by_order.items()
+            }
+            for profile, by_order in doc[where].items()
+        }
 
     return tables("interior"), tables("edge")
 
@@ -156,8 +176,11 @@ ERROR_CONSTANTS, EDGE_ERROR_CONSTANTS = _load_error_constants()
 def _constants(profile: str, order: int, edge: bool, dtype, device) -> Tensor:
     """:data:`ERROR_CONSTANTS` (or the edge ones) of a profile and order as a tensor
     ``(classes, len(RHO_LADDER))``."""
-    return torch.as_tensor((EDGE_ERROR_CONSTANTS if edge else ERROR_CONSTANTS)[profile][order], dtype=dtype,
-                           device=device)
+    return torch.as_tensor(
+        (EDGE_ERROR_CONSTANTS if edge else ERROR_CONSTANTS)[profile][order],
+        dtype=dtype,
+        device=device,
+    )
 
 
 def constant_class(table: Tensor, profile: str) -> Tensor:
@@ -218,7 +241,7 @@ def _tile_distortion(dx: Tensor, dy: Tensor, blk: GridBlock, tile: int) -> Tenso
         g[:, :, :-1] = torch.maximum(g[:, :, :-1], gu)
     nt = -(-m // tile)
     g = torch.nn.functional.pad(g, (0, nt * tile - m, 0, nt * tile - m))
-    return (g.reshape(b, nt, tile, nt, tile).amax((2, 4)) / blk.step)
+    return g.reshape(b, nt, tile, nt, tile).amax((2, 4)) / blk.step
 
 
 def _member_distortion(tile_g: Tensor, v: Tensor, u: Tensor, reach: Tensor, tile: int) -> Tensor:
@@ -227,14 +250,14 @@ def _member_distortion(tile_g: Tensor, v: Tensor, u: Tensor, reach: Tensor, tile
     filter per distinct reach (in tiles), read at the member's tile."""
     b, nt, _ = tile_g.shape
     k = torch.ceil(reach / tile).to(torch.long) + 1  # tiles
-    J = torch.floor(v / tile).to(torch.long).clamp(0, nt - 1)
-    I = torch.floor(u / tile).to(torch.long).clamp(0, nt - 1)
+    row = torch.floor(v / tile).to(torch.long).clamp(0, nt - 1)
+    col = torch.floor(u / tile).to(torch.long).clamp(0, nt - 1)
     out = torch.zeros_like(v)
     for kk in torch.unique(k).tolist():
         w = min(2 * kk + 1, 2 * nt + 1)
         pooled = torch.nn.functional.max_pool2d(tile_g[:, None], w, stride=1, padding=w // 2)[:, 0]
         sel = k == kk
-        val = pooled[torch.arange(b, device=v.device)[:, None].expand_as(J), J, I]
+        val = pooled[torch.arange(b, device=v.device)[:, None].expand_as(row), row, col]
         out = torch.where(sel, val, out)
     return out
 
@@ -246,14 +269,21 @@ SMOOTH_DISTORTION = 0.02
 MAX_DISTORTION = 0.25
 
 
-def far_on_tiles(far_k, tx: Tensor, ty: Tensor, table: Tensor, profile: str, inv_rc2: Tensor, img: Tensor):
+def far_on_tiles(
+    far_k, tx: Tensor, ty: Tensor, table: Tensor, profile: str, inv_rc2: Tensor, img: Tensor
+):
     """Exact far field ``(T, Q)`` at the points of tiles ``tx, ty`` ``(T, Q)`` of images
     ``img`` ``(T,)`` (members of image ``img[t]`` only)."""
     outs = [[], [], []]
     for k in torch.unique(img).tolist():
         sel = img == k
-        fx, fy, fk = far_k(tx[sel].reshape(1, -1), ty[sel].reshape(1, -1), table[k:k + 1].contiguous(), profile,
-                           inv_rc2[k:k + 1].contiguous())
+        fx, fy, fk = far_k(
+            tx[sel].reshape(1, -1),
+            ty[sel].reshape(1, -1),
+            table[k : k + 1].contiguous(),
+            profile,
+            inv_rc2[k : k + 1].contiguous(),
+        )
         for o, f in zip(outs, (fx, fy, fk)):
             o.append((sel, f.reshape(-1, tx.shape[1])))
     res = []
@@ -281,7 +311,9 @@ def near_pairs(v: Tensor, u: Tensor, radius: Tensor, live: Tensor, n_tiles: int,
 
     def gap(c: Tensor) -> Tensor:  # (b, n_t, N): distance from c to each box along one axis
         c = c[:, None, :]
-        return torch.clamp(torch.maximum(lo[None, :, None] - c, c - hi[None, :, None]), min=0.0).square_()
+        return torch.clamp(
+            torch.maximum(lo[None, :, None] - c, c - hi[None, :, None]), min=0.0
+        ).square_()
 
     r2 = torch.where(live, radius * radius, torch.full_like(radius, -1.0))
     near = gap(v)[:, :, None, :] + gap(u)[:, None, :, :] <= r2[:, None, None, :]
@@ -294,8 +326,12 @@ def _tiled(v: Tensor, m: int, tile: int, fill: float) -> Tensor:
     """``(b, m²)`` block values → ``(b·n_t², tile²)`` tiles (padded with ``fill``)."""
     b = v.shape[0]
     nt = -(-m // tile)
-    img = torch.nn.functional.pad(v.reshape(b, m, m), (0, nt * tile - m, 0, nt * tile - m), value=fill)
-    return img.reshape(b, nt, tile, nt, tile).permute(0, 1, 3, 2, 4).reshape(b * nt * nt, tile * tile)
+    img = torch.nn.functional.pad(
+        v.reshape(b, m, m), (0, nt * tile - m, 0, nt * tile - m), value=fill
+    )
+    return (
+        img.reshape(b, nt, tile, nt, tile).permute(0, 1, 3, 2, 4).reshape(b * nt * nt, tile * tile)
+    )
 
 
 def _replace_tiles(v: Tensor, tiles: Tensor, vals: Tensor, b: int, m: int) -> Tensor:
@@ -311,8 +347,15 @@ def _untiled(t: Tensor, b: int, m: int, tile: int) -> Tensor:
     return img[:, :m, :m].reshape(b, m * m)
 
 
-def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, peaks=None,
-                 half_width: float | None = None) -> Tensor:
+def member_rungs(
+    table: Tensor,
+    profile: str,
+    h: float,
+    order: int,
+    tolerance,
+    peaks=None,
+    half_width: float | None = None,
+) -> Tensor:
     """Index into :data:`RHO_LADDER` of each member's split radius ``(b, N)`` (long).
 
     The smallest ρ with ``C_p(ρ)·max|α_i(r = ρh)| ≤ tolerance`` (arcsec), ``|α_i|``
@@ -330,7 +373,9 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
     rho = torch.as_tensor(RHO_LADDER, **kw)
     if profile not in ERROR_CONSTANTS or order not in ERROR_CONSTANTS[profile]:
         known = {p: sorted(v) for p, v in ERROR_CONSTANTS.items()}
-        raise ValueError(f"no split error constants for profile {profile!r} and order {order}; known: {known}")
+        raise ValueError(
+            f"no split error constants for profile {profile!r} and order {order}; known: {known}"
+        )
     cls = constant_class(table, profile)
     c_in = _constants(profile, order, False, table.dtype, table.device)[cls]  # (b, N, L)
     c_edge = _constants(profile, order, True, table.dtype, table.device)[cls]
@@ -351,8 +396,18 @@ def member_rungs(table: Tensor, profile: str, h: float, order: int, tolerance, p
     return ok.to(torch.int8).argmax(-1)
 
 
-def near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: Tensor, mem: Tensor,
-                   tx_all: Tensor, ty_all: Tensor, m: int, max_elements: int):
+def near_on_tiles(
+    near_k,
+    table: Tensor,
+    profile: str,
+    inv_rc2: Tensor,
+    tiles: Tensor,
+    mem: Tensor,
+    tx_all: Tensor,
+    ty_all: Tensor,
+    m: int,
+    max_elements: int,
+):
     """Near field of the (tile, member) pairs on one ``m × m`` block.
 
     The members of each tile fill rows of :data:`ROW_SLOTS` slots (the last row of a
@@ -376,18 +431,30 @@ def near_on_tiles(near_k, table: Tensor, profile: str, inv_rc2: Tensor, tiles: T
     tile_of_row = torch.repeat_interleave(torch.arange(n_all, device=device), rows_per)
     flat_tab = torch.cat([table.permute(1, 0, 2).reshape(n_rows, b * n), table[0, :, :1]], 1)
     flat_irc = torch.cat([inv_rc2.reshape(-1), inv_rc2.new_zeros(1)])
-    mask_all = torch.cat([torch.ones(b * n, dtype=dtype, device=device), torch.zeros(1, dtype=dtype, device=device)])
+    mask_all = torch.cat(
+        [torch.ones(b * n, dtype=dtype, device=device), torch.zeros(1, dtype=dtype, device=device)]
+    )
     q = TILE * TILE
     full = torch.zeros(3, n_all, q, dtype=dtype, device=device)
     step = max(1, max_elements // (q * w))
     for r0 in range(0, n_r, step):
-        p = pos[r0:r0 + step]
-        t = tile_of_row[r0:r0 + step]
+        p = pos[r0 : r0 + step]
+        t = tile_of_row[r0 : r0 + step]
         fp = p.reshape(-1)
-        out = near_k(tx_all[t], ty_all[t], torch.index_select(flat_tab, 1, fp).reshape(n_rows, *p.shape), profile,
-                     flat_irc.index_select(0, fp).reshape(p.shape), mask_all.index_select(0, fp).reshape(p.shape))
+        out = near_k(
+            tx_all[t],
+            ty_all[t],
+            torch.index_select(flat_tab, 1, fp).reshape(n_rows, *p.shape),
+            profile,
+            flat_irc.index_select(0, fp).reshape(p.shape),
+            mask_all.index_select(0, fp).reshape(p.shape),
+        )
         full.index_add_(1, t, torch.stack(out))
-    return _untiled(full[0], b, m, TILE), _untiled(full[1], b, m, TILE), full[2].reshape(b, -1).sum(1)
+    return (
+        _untiled(full[0], b, m, TILE),
+        _untiled(full[1], b, m, TILE),
+        full[2].reshape(b, -1).sum(1),
+    )
 
 
 #: Population size up to which ``split_tolerance`` is the per-member error target; a
@@ -434,7 +501,9 @@ def _far_field(p: _Pass, bx: Tensor, by: Tensor, blk: GridBlock):
     step_n = max(1, p.max_elements // max(1, flat_nodes.numel()))
     for s in range(0, p.n, step_n):
         e = min(p.n, s + step_n)
-        px, py, pk = p.far_k(xn, yn, p.table[:, :, s:e].contiguous(), p.profile, p.inv_rc2[:, s:e].contiguous())
+        px, py, pk = p.far_k(
+            xn, yn, p.table[:, :, s:e].contiguous(), p.profile, p.inv_rc2[:, s:e].contiguous()
+        )
         fx, fy, fk = (px, py, pk) if fx is None else (fx + px, fy + py, fk + pk)
     return fx, fy, fk, nodes, interpolation_matrix(m, nodes, p.order, bx.dtype, bx.device)
 
@@ -447,12 +516,16 @@ def _rough_tiles(p: _Pass, rough: Tensor, tx_all: Tensor, ty_all: Tensor, nt: in
     step_r = max(1, p.max_elements // max(1, tx.numel()))
     for s0 in range(0, p.n, step_r):
         e0 = min(p.n, s0 + step_r)
-        px, py, pk = far_on_tiles(p.far_k, tx, ty, p.table[:, :, s0:e0], p.profile, p.inv_rc2[:, s0:e0], img)
+        px, py, pk = far_on_tiles(
+            p.far_k, tx, ty, p.table[:, :, s0:e0], p.profile, p.inv_rc2[:, s0:e0], img
+        )
         ex, ey, ek = (px, py, pk) if ex is None else (ex + px, ey + py, ek + pk)
     return ex, ey, ek
 
 
-def _near_radius(p: _Pass, blk: GridBlock, disp: tuple[Tensor, Tensor] | None, tile_g: Tensor | None):
+def _near_radius(
+    p: _Pass, blk: GridBlock, disp: tuple[Tensor, Tensor] | None, tile_g: Tensor | None
+):
     """Image-plane grid position ``(v, u)`` of each member and the radius (in grid
     steps) within which its near field can reach a point."""
     margin = 0.75
@@ -463,13 +536,22 @@ def _near_radius(p: _Pass, blk: GridBlock, disp: tuple[Tensor, Tensor] | None, t
     v, u = _image_position(cx, cy, blk, *disp)
     reach0 = p.r_c / blk.step + margin + 1.0
     grad = _member_distortion(tile_g, v, u, 2.0 * reach0, TILE)
-    radius = torch.where(grad <= MAX_DISTORTION, reach0 / (1.0 - grad.clamp(max=MAX_DISTORTION)),
-                         torch.full_like(reach0, 4.0 * blk.m))
+    radius = torch.where(
+        grad <= MAX_DISTORTION,
+        reach0 / (1.0 - grad.clamp(max=MAX_DISTORTION)),
+        torch.full_like(reach0, 4.0 * blk.m),
+    )
     return v, u, radius
 
 
-def _block_pass(p: _Pass, bx: Tensor, by: Tensor, blk: GridBlock, base: tuple[Tensor, Tensor] | None,
-                with_sheet: bool):
+def _block_pass(
+    p: _Pass,
+    bx: Tensor,
+    by: Tensor,
+    blk: GridBlock,
+    base: tuple[Tensor, Tensor] | None,
+    with_sheet: bool,
+):
     """Deflection ``(b, m²)`` of one grid block (far field interpolated, rough tiles
     exact, near field on tiles) and, for the sheet block, its κ sum ``(b,)``."""
     b, m = p.b, blk.m
@@ -505,8 +587,9 @@ def _block_pass(p: _Pass, bx: Tensor, by: Tensor, blk: GridBlock, base: tuple[Te
     v, u, radius = _near_radius(p, blk, disp, tile_g)
     tiles, mem = near_pairs(v, u, radius, p.live, nt, TILE)
     if tiles.numel():
-        ox, oy, ok_ = near_on_tiles(p.near_k, p.table, p.profile, p.inv_rc2, tiles, mem, tx_all, ty_all, m,
-                                    p.max_elements)
+        ox, oy, ok_ = near_on_tiles(
+            p.near_k, p.table, p.profile, p.inv_rc2, tiles, mem, tx_all, ty_all, m, p.max_elements
+        )
         acc_x = acc_x + ox
         acc_y = acc_y + oy
         if with_sheet:
@@ -514,9 +597,22 @@ def _block_pass(p: _Pass, bx: Tensor, by: Tensor, blk: GridBlock, base: tuple[Te
     return acc_x, acc_y, k_sum
 
 
-def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[GridBlock],
-               sheet_block: int, *, spacing: float, order: int, tolerance: float, displaced: bool,
-               base: tuple[Tensor, Tensor] | None, kernels, max_elements: int):
+def split_pass(
+    table: Tensor,
+    profile: str,
+    x: Tensor,
+    y: Tensor,
+    blocks: list[GridBlock],
+    sheet_block: int,
+    *,
+    spacing: float,
+    order: int,
+    tolerance: float,
+    displaced: bool,
+    base: tuple[Tensor, Tensor] | None,
+    kernels,
+    max_elements: int,
+):
     """Near/far population pass. Returns ``(alpha_x, alpha_y, kappa_sum)``.
 
     ``table``: ``(b, M, N)`` member table (:func:`subslope.physics.pairs.sums.member_table`);
@@ -545,16 +641,27 @@ def split_pass(table: Tensor, profile: str, x: Tensor, y: Tensor, blocks: list[G
     rungs = member_rungs(table, profile, spacing, order, tol, peaks_k, half)  # (b, N)
     rho = torch.as_tensor(RHO_LADDER, dtype=dtype, device=device)[rungs]
     r_c = rho * spacing
-    p = _Pass(table, profile, 1.0 / (r_c * r_c), r_c, live, far_k, near_k, order, spacing, max_elements)
+    p = _Pass(
+        table, profile, 1.0 / (r_c * r_c), r_c, live, far_k, near_k, order, spacing, max_elements
+    )
     outs_x, outs_y = [], []
     k_sum = None
     for g, blk in enumerate(blocks):
         sl = slice(blk.offset, blk.offset + blk.m * blk.m)
-        ax, ay, ks = _block_pass(p, x[:, sl].contiguous(), y[:, sl].contiguous(), blk,
-                                 base if displaced else None, g == sheet_block)
+        ax, ay, ks = _block_pass(
+            p,
+            x[:, sl].contiguous(),
+            y[:, sl].contiguous(),
+            blk,
+            base if displaced else None,
+            g == sheet_block,
+        )
         outs_x.append(ax)
         outs_y.append(ay)
         k_sum = ks if g == sheet_block else k_sum
     if blocks[-1].offset + blocks[-1].m ** 2 != x.shape[1]:
-        raise ValueError(f"grid blocks cover {blocks[-1].offset + blocks[-1].m ** 2} points, rays have {x.shape[1]}")
+        raise ValueError(
+            f"grid blocks cover {blocks[-1].offset + blocks[-1].m ** 2} points, rays have "
+            f"{x.shape[1]}"
+        )
     return torch.cat(outs_x, 1), torch.cat(outs_y, 1), k_sum

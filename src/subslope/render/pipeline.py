@@ -7,7 +7,8 @@ Pipeline for a batch of ``B`` systems, one function per step (``docs/simulation.
 2. lens equation: main-lens EPL (amplitude θ_E^(γ−1)) + external shear (about the
    origin) + m = 3, 4 multipoles (about the lens centre) + the subhalo population and
    its negative sheet, all in the lens plane; with line-of-sight halos, one extra plane
-   per slice redshift (own negative sheet) and :func:`subslope.physics.raytrace.multi_plane_ray_shoot`;
+   per slice redshift (own negative sheet) and
+   :func:`subslope.physics.raytrace.multi_plane_ray_shoot`;
 3. source surface brightness at β (COSMOS stamps via :mod:`subslope.physics.light.pixelated`, or
    an elliptical Sérsic rotated by ``src_rotation``, or a multi-Sérsic source: a sum of
    Sérsic components whose shapes and centre offsets rotate with ``src_rotation``),
@@ -33,7 +34,8 @@ near/far split of :mod:`subslope.render.nearfar` (``RenderSettings.population``)
 :mod:`subslope.render.kernels` the compiled kernels, :mod:`subslope.render.settings`
 the knobs.
 
-Determinism: on CPU (``RenderSettings.batching = 'auto'``) the images of a batch are rendered one at a time, so image ``i``
+Determinism: on CPU (``RenderSettings.batching = 'auto'``) the images of a batch are rendered one
+at a time, so image ``i``
 alone == image ``i`` in a batch, bit for bit (all member counts, chunk widths and
 split radii are per image). On other devices images are rendered in sub-batches
 padded to the largest population: there an image alone and in a batch agree to float
@@ -64,19 +66,41 @@ from subslope.ragged import pack_ragged
 from subslope.render.counters import count_step
 from subslope.render.kernels import Kernels, kernels_for
 from subslope.render.nearfar import GridBlock
-from subslope.render.populations import (PROFILE_KEYS, Geometry, Population, flat_table, main_lens_deflection,
-                                         pack_population, population_pass, select_systems)
+from subslope.render.populations import (
+    PROFILE_KEYS,
+    Geometry,
+    Population,
+    flat_table,
+    main_lens_deflection,
+    pack_population,
+    population_pass,
+    select_systems,
+)
 from subslope.render.settings import PixelatedSources, RenderSettings, chunk_width
 
 __all__ = ["RenderSettings", "PixelatedSources", "render_smooth", "render"]
 
 
 # ------------------------------------------------------------------------------ checks
-_REQUIRED = ("z_lens", "z_source", "lens_x", "lens_y", "theta_e", "lens_e1", "lens_e2", "gamma_ml",
-             "src_x", "src_y", "src_rotation")
-_GROUPS = {"multipoles": ("a3", "phi3", "a4", "phi4"), "shear": ("shear_g1", "shear_g2"),
-           "lens_light": ("light_mag", "light_r", "light_n", "light_e1", "light_e2"),
-           "source_sersic": ("src_mag", "src_r", "src_n", "src_e1", "src_e2")}
+_REQUIRED = (
+    "z_lens",
+    "z_source",
+    "lens_x",
+    "lens_y",
+    "theta_e",
+    "lens_e1",
+    "lens_e2",
+    "gamma_ml",
+    "src_x",
+    "src_y",
+    "src_rotation",
+)
+_GROUPS = {
+    "multipoles": ("a3", "phi3", "a4", "phi4"),
+    "shear": ("shear_g1", "shear_g2"),
+    "lens_light": ("light_mag", "light_r", "light_n", "light_e1", "light_e2"),
+    "source_sersic": ("src_mag", "src_r", "src_n", "src_e1", "src_e2"),
+}
 
 
 def _multi_sersic_slots(macro: dict) -> int:
@@ -95,7 +119,9 @@ _MULTI_PER = ("frac", "r", "n", "e1", "e2", "dx", "dy")
 def _check_macro(macro: dict, sources) -> int:
     missing = [k for k in _REQUIRED if k not in macro]
     if missing:
-        raise ValueError(f"macro is missing keys {missing} (see subslope.simulation.macro.sample_macro)")
+        raise ValueError(
+            f"macro is missing keys {missing} (see subslope.simulation.macro.sample_macro)"
+        )
     n = len(np.asarray(macro["z_lens"]))
     for k, v in macro.items():
         if np.ndim(v) != 1 or len(v) != n:
@@ -106,21 +132,31 @@ def _check_macro(macro: dict, sources) -> int:
             raise ValueError(f"macro has only some of the {g} keys {keys}: give all or none")
     kmax = _multi_sersic_slots(macro)
     if "src_ncomp" in macro or "src_mag_total" in macro:
-        need = ["src_mag_total", "src_ncomp"] + [f"src_{p}_{j}" for j in range(max(kmax, 1)) for p in _MULTI_PER]
+        need = ["src_mag_total", "src_ncomp"] + [
+            f"src_{p}_{j}" for j in range(max(kmax, 1)) for p in _MULTI_PER
+        ]
         missing = [kk for kk in need if kk not in macro]
         if missing:
-            raise ValueError(f"multi-Sérsic source keys {missing} are missing from macro "
-                             "(see subslope.simulation.scenes.multi_sersic_keys)")
+            raise ValueError(
+                f"multi-Sérsic source keys {missing} are missing from macro "
+                "(see subslope.simulation.scenes.multi_sersic_keys)"
+            )
         if "src_mag" in macro or sources is not None:
-            raise ValueError("give exactly one source: multi-Sérsic keys (src_mag_total, src_ncomp, ...), "
-                             "Sérsic keys (src_mag, ...) or sources=")
+            raise ValueError(
+                "give exactly one source: multi-Sérsic keys (src_mag_total, src_ncomp, ...), "
+                "Sérsic keys (src_mag, ...) or sources="
+            )
         return n
     sersic = "src_mag" in macro
     if sersic and sources is not None:
-        raise ValueError("give either Sérsic source keys (src_mag, ...) in macro or sources=, not both")
+        raise ValueError(
+            "give either Sérsic source keys (src_mag, ...) in macro or sources=, not both"
+        )
     if not sersic and sources is None:
-        raise ValueError("no source: pass sources=PixelatedSources(...) or Sérsic keys src_mag, src_r, "
-                         "src_n, src_e1, src_e2 in macro")
+        raise ValueError(
+            "no source: pass sources=PixelatedSources(...) or Sérsic keys src_mag, src_r, "
+            "src_n, src_e1, src_e2 in macro"
+        )
     return n
 
 
@@ -162,8 +198,11 @@ class _Batch:
 
     def par(self, key: str) -> Tensor:
         """Macro parameter ``key`` of the sub-batch, ``(b, 1)`` in the render dtype."""
-        return torch.as_tensor(np.asarray(self.macro[key], dtype=np.float64)[self.idx], dtype=self.settings.dtype,
-                               device=self.device)[:, None]
+        return torch.as_tensor(
+            np.asarray(self.macro[key], dtype=np.float64)[self.idx],
+            dtype=self.settings.dtype,
+            device=self.device,
+        )[:, None]
 
     def values(self, key: str) -> np.ndarray:
         """Macro parameter ``key`` of the sub-batch, ``(b,)`` float64."""
@@ -172,8 +211,10 @@ class _Batch:
 
 def _flat_members(pop, sel: np.ndarray) -> dict[str, np.ndarray | None]:
     """The parameters of members ``sel`` of a ragged population, flat."""
-    return {kk: (None if getattr(pop, kk, None) is None else np.asarray(getattr(pop, kk))[sel])
-            for kk in PROFILE_KEYS[pop.profile]}
+    return {
+        kk: (None if getattr(pop, kk, None) is None else np.asarray(getattr(pop, kk))[sel])
+        for kk in PROFILE_KEYS[pop.profile]
+    }
 
 
 def _subhalo_population(batch: _Batch, subhalos) -> Population | None:
@@ -184,7 +225,9 @@ def _subhalo_population(batch: _Batch, subhalos) -> Population | None:
     if counts.sum() == 0:
         return None
     s = batch.settings
-    return pack_population(subhalos.profile, _flat_members(subhalos, sel), counts, s.n_terms, s.dtype, batch.device)
+    return pack_population(
+        subhalos.profile, _flat_members(subhalos, sel), counts, s.n_terms, s.dtype, batch.device
+    )
 
 
 def _lens_plane(batch: _Batch, sub_pop: Population | None):
@@ -194,11 +237,21 @@ def _lens_plane(batch: _Batch, sub_pop: Population | None):
     n_pix = batch.grid[2]
     lens_amp = theta_e_to_amp(par("theta_e"), par("gamma_ml"))
     lens = {kk: par(kk) for kk in ("gamma_ml", "lens_e1", "lens_e2", "lens_x", "lens_y")}
-    lens_table = epl_table({"amp": lens_amp, "gamma": lens["gamma_ml"], "e1": lens["lens_e1"],
-                            "e2": lens["lens_e2"], "x": lens["lens_x"], "y": lens["lens_y"]},
-                           settings.n_terms_main).contiguous()
+    lens_table = epl_table(
+        {
+            "amp": lens_amp,
+            "gamma": lens["gamma_ml"],
+            "e1": lens["lens_e1"],
+            "e2": lens["lens_e2"],
+            "x": lens["lens_x"],
+            "y": lens["lens_y"],
+        },
+        settings.n_terms_main,
+    ).contiguous()
     shear = {kk: par(kk) for kk in _GROUPS["shear"]} if _has(batch.macro, "shear") else None
-    mpole = {kk: par(kk) for kk in _GROUPS["multipoles"]} if _has(batch.macro, "multipoles") else None
+    mpole = (
+        {kk: par(kk) for kk in _GROUPS["multipoles"]} if _has(batch.macro, "multipoles") else None
+    )
 
     def lens_plane(tx: Tensor, ty: Tensor, displaced: bool = True) -> tuple[Tensor, Tensor]:
         count_step("main_lens")
@@ -210,11 +263,17 @@ def _lens_plane(batch: _Batch, sub_pop: Population | None):
         if mpole is not None:
             count_step("multipoles")
             for m, a, phi in ((3, "a3", "phi3"), (4, "a4", "phi4")):
-                mx, my = multipole_deflection(tx, ty, m, mpole[a], mpole[phi], lens["lens_x"], lens["lens_y"])
+                mx, my = multipole_deflection(
+                    tx, ty, m, mpole[a], mpole[phi], lens["lens_x"], lens["lens_y"]
+                )
                 ax, ay = ax + mx, ay + my
         if sub_pop is not None:
             count_step("subhalos")
-            geo = batch.geometry if displaced else dataclasses.replace(batch.geometry, displaced=False)
+            geo = (
+                batch.geometry
+                if displaced
+                else dataclasses.replace(batch.geometry, displaced=False)
+            )
             px, py, _ = population_pass(sub_pop, tx, ty, settings, kernels, n_pix, geo)
             ax, ay = ax + px, ay + py
         return ax, ay
@@ -236,23 +295,33 @@ def _los_planes(batch: _Batch, los, lens_plane, zl: np.ndarray, zs: np.ndarray) 
     bad = z_h >= zs[sys_local]
     if np.any(bad):
         j = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"los.z = {z_h[j]} is not in front of z_source = {zs[sys_local[j]]} "
-                         f"of system {int(batch.idx[sys_local[j]])}")
+        raise ValueError(
+            f"los.z = {z_h[j]} is not in front of z_source = {zs[sys_local[j]]} "
+            f"of system {int(batch.idx[sys_local[j]])}"
+        )
     front, back = [], []
     # one member table for every LoS halo of the sub-batch (plus a zero-amplitude
     # column for padding); each slice plane gathers its columns
-    table_all = flat_table(los.profile, _flat_members(los, sel), settings.n_terms, settings.dtype, device)
+    table_all = flat_table(
+        los.profile, _flat_members(los, sel), settings.n_terms, settings.dtype, device
+    )
     n_los = table_all.shape[-1] - 1
     for zu in np.unique(z_h):
         on = np.flatnonzero(z_h == zu)
         c_slice = np.bincount(sys_local[on], minlength=b)
         cols, _ = pack_ragged(on, counts=c_slice, n_max=max(1, int(c_slice.max())), fill=n_los)
-        pop = Population(los.profile, table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2), c_slice)
+        pop = Population(
+            los.profile,
+            table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2),
+            c_slice,
+        )
         has = c_slice > 0
 
         def deflect(tx, ty, pop=pop):
             count_step("los")
-            ax, ay, _ = population_pass(pop, tx, ty, settings, batch.kernels, batch.grid[2], batch.geometry)
+            ax, ay, _ = population_pass(
+                pop, tx, ty, settings, batch.kernels, batch.grid[2], batch.geometry
+            )
             return ax, ay
 
         a_front, a_back = has & (zu < zl), has & (zu >= zl)
@@ -298,12 +367,24 @@ def _multi_sersic_source(batch: _Batch, bx: Tensor, by: Tensor, kmax: int) -> Te
         comp["e2"].append(s2 * e1 + c2 * e2)
         comp["x"].append(cx + c1 * dx - s1 * dy)
         comp["y"].append(cy + s1 * dx + c1 * dy)
-    return multi_sersic_from_magnitude(bx, by, par("src_mag_total"), comp["f"], comp["r"], comp["n"],
-                                       comp["e1"], comp["e2"], comp["x"], comp["y"],
-                                       zero_point=batch.settings.zero_point)
+    return multi_sersic_from_magnitude(
+        bx,
+        by,
+        par("src_mag_total"),
+        comp["f"],
+        comp["r"],
+        comp["n"],
+        comp["e1"],
+        comp["e2"],
+        comp["x"],
+        comp["y"],
+        zero_point=batch.settings.zero_point,
+    )
 
 
-def _source_light(batch: _Batch, bx: Tensor, by: Tensor, sources: PixelatedSources | None) -> Tensor:
+def _source_light(
+    batch: _Batch, bx: Tensor, by: Tensor, sources: PixelatedSources | None
+) -> Tensor:
     """Source surface brightness at the source-plane positions (multi-Sérsic, Sérsic or
     pixelated), e⁻/s per arcsec²."""
     par, settings, device = batch.par, batch.settings, batch.device
@@ -315,18 +396,38 @@ def _source_light(batch: _Batch, bx: Tensor, by: Tensor, sources: PixelatedSourc
         rot = par("src_rotation")
         e1, e2 = par("src_e1"), par("src_e2")
         c2, s2 = torch.cos(2 * rot), torch.sin(2 * rot)
-        return sersic_ellipse_from_magnitude(bx, by, par("src_mag"), par("src_r"), par("src_n"),
-                                             c2 * e1 - s2 * e2, s2 * e1 + c2 * e2, par("src_x"), par("src_y"),
-                                             zero_point=settings.zero_point)
+        return sersic_ellipse_from_magnitude(
+            bx,
+            by,
+            par("src_mag"),
+            par("src_r"),
+            par("src_n"),
+            c2 * e1 - s2 * e2,
+            s2 * e1 + c2 * e2,
+            par("src_x"),
+            par("src_y"),
+            zero_point=settings.zero_point,
+        )
     count_step("source_pixelated")
     dtype, idx = settings.dtype, batch.idx
     st = torch.as_tensor(sources.stamps)
     st = st[torch.as_tensor(idx, device=st.device)].to(dtype=dtype, device=device)
     offs = torch.as_tensor(sources.offsets)[torch.as_tensor(idx)].to(dtype=dtype, device=device)
-    ps = torch.as_tensor(np.asarray(sources.pixel_scale, dtype=np.float64)[idx], dtype=dtype, device=device)[:, None]
-    return pixelated_light(bx, by, st, ps, par("src_rotation"), par("src_x"), par("src_y"),
-                           order=settings.source_interpolation, stamp_offset_x=offs[:, 0:1],
-                           stamp_offset_y=offs[:, 1:2])
+    ps = torch.as_tensor(
+        np.asarray(sources.pixel_scale, dtype=np.float64)[idx], dtype=dtype, device=device
+    )[:, None]
+    return pixelated_light(
+        bx,
+        by,
+        st,
+        ps,
+        par("src_rotation"),
+        par("src_x"),
+        par("src_y"),
+        order=settings.source_interpolation,
+        stamp_offset_x=offs[:, 0:1],
+        stamp_offset_y=offs[:, 1:2],
+    )
 
 
 def _observe(batch: _Batch, sb: Tensor, psf: Tensor, smooth: bool) -> Tensor:
@@ -339,20 +440,32 @@ def _observe(batch: _Batch, sb: Tensor, psf: Tensor, smooth: bool) -> Tensor:
     if not smooth and _has(batch.macro, "lens_light"):
         count_step("lens_light")
         sb = sb + sersic_ellipse_from_magnitude(
-            xg[:, :n_ss], yg[:, :n_ss], par("light_mag"), par("light_r"), par("light_n"), par("light_e1"),
-            par("light_e2"), par("lens_x"), par("lens_y"), zero_point=settings.zero_point)
+            xg[:, :n_ss],
+            yg[:, :n_ss],
+            par("light_mag"),
+            par("light_r"),
+            par("light_n"),
+            par("light_e1"),
+            par("light_e2"),
+            par("lens_x"),
+            par("lens_y"),
+            zero_point=settings.zero_point,
+        )
     m = settings.npix * k
     img = sb.reshape(batch.size, m, m)
     if k > 1:
         count_step("supersample_bin")
         img = _bin(img, k)
-    img = img * (settings.pixel_scale ** 2)
+    img = img * (settings.pixel_scale**2)
     count_step("psf")
-    return torch.cat([convolve(img[i:i + 1], psf, method=settings.convolution) for i in range(batch.size)], 0)
+    return torch.cat(
+        [convolve(img[i : i + 1], psf, method=settings.convolution) for i in range(batch.size)], 0
+    )
 
 
-def _render_group(batch: _Batch, psf: Tensor, sources: PixelatedSources | None, subhalos, los,
-                  smooth: bool) -> Tensor:
+def _render_group(
+    batch: _Batch, psf: Tensor, sources: PixelatedSources | None, subhalos, los, smooth: bool
+) -> Tensor:
     """The images of one sub-batch: trace the rays through the planes, then observe."""
     zl, zs = batch.values("z_lens"), batch.values("z_source")
     lens_plane = _lens_plane(batch, None if smooth else _subhalo_population(batch, subhalos))
@@ -369,7 +482,9 @@ def _check_populations(n: int, subhalos, los) -> None:
     if los is not None and len(los.counts) != n:
         raise ValueError(f"los.counts has {len(los.counts)} systems, macro has {n}")
     if subhalos is not None and subhalos.profile not in PROFILE_KEYS:
-        raise ValueError(f"subhalos.profile must be one of {tuple(PROFILE_KEYS)}, got {subhalos.profile!r}")
+        raise ValueError(
+            f"subhalos.profile must be one of {tuple(PROFILE_KEYS)}, got {subhalos.profile!r}"
+        )
 
 
 def _points(settings: RenderSettings, device: torch.device) -> tuple[Tensor, Tensor, Geometry]:
@@ -388,10 +503,13 @@ def _points(settings: RenderSettings, device: torch.device) -> tuple[Tensor, Ten
     return xg, yg, Geometry(tuple(blocks), len(blocks) - 1, (xg, yg))
 
 
-def _sub_batches(n: int, n_all: int, settings: RenderSettings, device: torch.device,
-                 kernels: Kernels) -> list[np.ndarray]:
+def _sub_batches(
+    n: int, n_all: int, settings: RenderSettings, device: torch.device, kernels: Kernels
+) -> list[np.ndarray]:
     """Image indices of each sub-batch (:attr:`RenderSettings.batching`)."""
-    per_image = settings.batching == "per_image" or (settings.batching == "auto" and device.type == "cpu")
+    per_image = settings.batching == "per_image" or (
+        settings.batching == "auto" and device.type == "cpu"
+    )
     if per_image:
         return [np.array([i]) for i in range(n)]
     bs = max(1, settings.max_elements // (chunk_width(settings, n_all, kernels.compiled) * n_all))
@@ -407,24 +525,44 @@ def _render(macro, psf, settings: RenderSettings, sources, subhalos, los, smooth
     psf_t = torch.as_tensor(psf).to(dtype=settings.dtype, device=device)
     xg, yg, geometry = _points(settings, device)
     kernels = kernels_for(settings, device)
-    grid = (xg, yg, settings.npix ** 2)
+    grid = (xg, yg, settings.npix**2)
     with torch.no_grad():
-        out = [_render_group(_Batch(g, macro, settings, device, kernels, geometry, grid), psf_t, sources, subhalos,
-                             los, smooth)
-               for g in _sub_batches(n, xg.shape[1], settings, device, kernels)]
+        out = [
+            _render_group(
+                _Batch(g, macro, settings, device, kernels, geometry, grid),
+                psf_t,
+                sources,
+                subhalos,
+                los,
+                smooth,
+            )
+            for g in _sub_batches(n, xg.shape[1], settings, device, kernels)
+        ]
     return torch.cat(out, 0)
 
 
-def render_smooth(macro: dict[str, np.ndarray], psf: Tensor, settings: RenderSettings, *,
-                  sources: PixelatedSources | None = None) -> Tensor:
+def render_smooth(
+    macro: dict[str, np.ndarray],
+    psf: Tensor,
+    settings: RenderSettings,
+    *,
+    sources: PixelatedSources | None = None,
+) -> Tensor:
     """Noise-free smooth model, ``(B, npix, npix)`` e⁻/s per pixel: main-lens EPL + shear +
     multipoles + source, PSF-convolved; no lens light, no subhalos, no LoS (used to
     place subhalos on the arc)."""
     return _render(macro, psf, settings, sources, None, None, smooth=True)
 
 
-def render(macro: dict[str, np.ndarray], psf: Tensor, settings: RenderSettings, *,
-           sources: PixelatedSources | None = None, subhalos=None, los=None) -> Tensor:
+def render(
+    macro: dict[str, np.ndarray],
+    psf: Tensor,
+    settings: RenderSettings,
+    *,
+    sources: PixelatedSources | None = None,
+    subhalos=None,
+    los=None,
+) -> Tensor:
     """Noise-free full image, ``(B, npix, npix)`` e⁻/s per pixel.
 
     ``macro``: :func:`subslope.simulation.macro.sample_macro` output (absent keys = component off);

@@ -24,15 +24,30 @@ from subslope.render.kernels import FEW_MEMBERS, Kernels
 from subslope.render.nearfar import GridBlock, split_pass
 from subslope.render.settings import RenderSettings, chunk_width
 
-__all__ = ["PAD_VALUES", "PROFILE_KEYS", "Geometry", "Population", "flat_table", "main_lens_deflection",
-           "pack_population", "population_pass", "profile_values", "select_systems", "use_split"]
+__all__ = [
+    "PAD_VALUES",
+    "PROFILE_KEYS",
+    "Geometry",
+    "Population",
+    "flat_table",
+    "main_lens_deflection",
+    "pack_population",
+    "population_pass",
+    "profile_values",
+    "select_systems",
+    "use_split",
+]
 
 
 def select_systems(counts, idx) -> tuple[np.ndarray, np.ndarray]:
     """Counts of systems ``idx`` of a ragged population and the flat indices of their members."""
     counts_all = np.asarray(counts, dtype=np.int64)
     off = counts_to_offsets(counts_all)
-    sel = np.concatenate([np.arange(off[i], off[i + 1]) for i in idx]) if len(idx) else np.zeros(0, np.int64)
+    sel = (
+        np.concatenate([np.arange(off[i], off[i + 1]) for i in idx])
+        if len(idx)
+        else np.zeros(0, np.int64)
+    )
     return counts_all[idx], sel
 
 
@@ -60,7 +75,9 @@ def profile_values(profile: str, flat: dict[str, np.ndarray]):
         yield key, np.asarray(flat[key], dtype=np.float64)
 
 
-def pack_population(profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms: int, dtype, device) -> Population:
+def pack_population(
+    profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms: int, dtype, device
+) -> Population:
     n_pad = max(1, int(counts.max()) if counts.size else 0)
     params = {}
     for key, vals in profile_values(profile, flat):
@@ -72,8 +89,10 @@ def pack_population(profile: str, flat: dict[str, np.ndarray], counts: np.ndarra
 def flat_table(profile: str, flat: dict[str, np.ndarray], n_terms: int, dtype, device) -> Tensor:
     """Member table ``(M, n + 1)`` of ``n`` members given as flat arrays, plus one padding
     member (zero amplitude) as the last column."""
-    params = {key: torch.as_tensor(np.append(vals, PAD_VALUES[key]), dtype=dtype, device=device)[None, :]
-              for key, vals in profile_values(profile, flat)}
+    params = {
+        key: torch.as_tensor(np.append(vals, PAD_VALUES[key]), dtype=dtype, device=device)[None, :]
+        for key, vals in profile_values(profile, flat)
+    }
     return member_table(profile, params, n_terms)[0]
 
 
@@ -95,8 +114,15 @@ def use_split(pop: Population, settings: RenderSettings, geometry: Geometry | No
     return settings.population == "split" or int(pop.counts.max()) >= settings.split_min_members
 
 
-def population_pass(pop: Population, x: Tensor, y: Tensor, settings: RenderSettings, kernels: Kernels,
-                     n_pix: int, geometry: Geometry | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def population_pass(
+    pop: Population,
+    x: Tensor,
+    y: Tensor,
+    settings: RenderSettings,
+    kernels: Kernels,
+    n_pix: int,
+    geometry: Geometry | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Summed deflection at (x, y) ``(b, P_all)`` and the negative-sheet κ ``(b, 1)``
     (minus the mean summed κ over the last ``n_pix`` points, the pixel-centre rays).
 
@@ -107,10 +133,21 @@ def population_pass(pop: Population, x: Tensor, y: Tensor, settings: RenderSetti
     n_all = x.shape[-1]
     if use_split(pop, settings, geometry):
         count_step("split")
-        out = split_pass(pop.table, pop.profile, x, y, list(geometry.blocks), geometry.sheet_block,
-                         spacing=settings.split_spacing * settings.pixel_scale, order=settings.split_order,
-                         tolerance=settings.split_tolerance, displaced=geometry.displaced, base=geometry.base,
-                         kernels=(kernels.far, kernels.near, kernels.peaks), max_elements=settings.max_elements)
+        out = split_pass(
+            pop.table,
+            pop.profile,
+            x,
+            y,
+            list(geometry.blocks),
+            geometry.sheet_block,
+            spacing=settings.split_spacing * settings.pixel_scale,
+            order=settings.split_order,
+            tolerance=settings.split_tolerance,
+            displaced=geometry.displaced,
+            base=geometry.base,
+            kernels=(kernels.far, kernels.near, kernels.peaks),
+            max_elements=settings.max_elements,
+        )
         ax, ay, k_sum = out
         k_sheet = -(k_sum / n_pix)[:, None]
         return ax + k_sheet * x, ay + k_sheet * y, k_sheet
@@ -120,16 +157,20 @@ def population_pass(pop: Population, x: Tensor, y: Tensor, settings: RenderSetti
     w = chunk_width(settings, n_all, kernels.compiled)
     ax = ay = kap = None
     for start in range(0, n, w):
-        dax, day, dk = kernels.direct(x, y, pop.table[:, :, start:start + w].contiguous(), pop.profile, True)
+        dax, day, dk = kernels.direct(
+            x, y, pop.table[:, :, start : start + w].contiguous(), pop.profile, True
+        )
         if ax is None:
             ax, ay, kap = dax, day, dk
         else:
             ax, ay, kap = ax + dax, ay + day, kap + dk
-    k_sheet = -(kap[:, n_all - n_pix:].sum(-1) / n_pix)[:, None]
+    k_sheet = -(kap[:, n_all - n_pix :].sum(-1) / n_pix)[:, None]
     return ax + k_sheet * x, ay + k_sheet * y, k_sheet
 
 
-def main_lens_deflection(x: Tensor, y: Tensor, table: Tensor, kernels: Kernels) -> tuple[Tensor, Tensor]:
+def main_lens_deflection(
+    x: Tensor, y: Tensor, table: Tensor, kernels: Kernels
+) -> tuple[Tensor, Tensor]:
     """Main-lens EPL deflection ``(b, P)`` from its one-member table ``(b, M, 1)``
     (``n_terms_main`` series terms; the same arithmetic as
     :func:`subslope.physics.profiles.epl.epl_deflection`, as one fused kernel)."""

@@ -18,7 +18,13 @@ from torch import Tensor
 
 from subslope.config import schema_defaults
 
-__all__ = ["RenderSettings", "PixelatedSources", "chunk_width", "INSTRUMENT_FIELDS", "NOT_RENDER_KEYS"]
+__all__ = [
+    "RenderSettings",
+    "PixelatedSources",
+    "chunk_width",
+    "INSTRUMENT_FIELDS",
+    "NOT_RENDER_KEYS",
+]
 
 _RENDER = schema_defaults("simulation.render")
 _INSTRUMENT = schema_defaults("instrument")
@@ -85,7 +91,9 @@ class RenderSettings:
     batching: str = _RENDER["batching"]
 
     @classmethod
-    def from_config(cls, render: Mapping[str, Any], instrument: Mapping[str, Any], **overrides: Any) -> RenderSettings:
+    def from_config(
+        cls, render: Mapping[str, Any], instrument: Mapping[str, Any], **overrides: Any
+    ) -> RenderSettings:
         """The settings of a validated config: ``simulation.render`` (every key but
         :data:`NOT_RENDER_KEYS`) and the instrument's ``npix``, ``pixel_scale`` and
         ``zero_point``; ``device`` 'auto' becomes None (chosen at render time)."""
@@ -105,28 +113,52 @@ class RenderSettings:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"RenderSettings.{name} must be a positive int, got {v!r}")
         if not self.pixel_scale > 0:
-            raise ValueError(f"RenderSettings.pixel_scale must be > 0 arcsec, got {self.pixel_scale!r}")
-        if self.chunk_members is not None and (not isinstance(self.chunk_members, int) or self.chunk_members < 1):
-            raise ValueError(f"RenderSettings.chunk_members must be None or an int >= 1, got {self.chunk_members!r}")
+            raise ValueError(
+                f"RenderSettings.pixel_scale must be > 0 arcsec, got {self.pixel_scale!r}"
+            )
+        if self.chunk_members is not None and (
+            not isinstance(self.chunk_members, int) or self.chunk_members < 1
+        ):
+            raise ValueError(
+                "RenderSettings.chunk_members must be None or an int >= 1, got "
+                f"{self.chunk_members!r}"
+            )
         if self.compile not in ("auto", "on", "off"):
-            raise ValueError(f"RenderSettings.compile must be 'auto', 'on' or 'off', got {self.compile!r}")
+            raise ValueError(
+                f"RenderSettings.compile must be 'auto', 'on' or 'off', got {self.compile!r}"
+            )
         if self.source_interpolation not in ("bilinear", "bicubic", "nearest"):
-            raise ValueError("RenderSettings.source_interpolation must be 'bilinear', 'bicubic' or "
-                             f"'nearest', got {self.source_interpolation!r}")
+            raise ValueError(
+                "RenderSettings.source_interpolation must be 'bilinear', 'bicubic' or "
+                f"'nearest', got {self.source_interpolation!r}"
+            )
         if self.convolution not in ("auto", "direct", "fft"):
-            raise ValueError(f"RenderSettings.convolution must be 'auto', 'direct' or 'fft', got {self.convolution!r}")
+            raise ValueError(
+                "RenderSettings.convolution must be 'auto', 'direct' or 'fft', got "
+                f"{self.convolution!r}"
+            )
         if self.population not in ("auto", "split", "direct"):
-            raise ValueError(f"RenderSettings.population must be 'auto', 'split' or 'direct', got {self.population!r}")
+            raise ValueError(
+                "RenderSettings.population must be 'auto', 'split' or 'direct', got "
+                f"{self.population!r}"
+            )
         if not (isinstance(self.split_tolerance, (int, float)) and self.split_tolerance > 0):
-            raise ValueError(f"RenderSettings.split_tolerance must be > 0 arcsec, got {self.split_tolerance!r}")
+            raise ValueError(
+                f"RenderSettings.split_tolerance must be > 0 arcsec, got {self.split_tolerance!r}"
+            )
         if self.split_order not in (4, 6, 8):
-            raise ValueError(f"RenderSettings.split_order must be 4, 6 or 8, got {self.split_order!r}")
+            raise ValueError(
+                f"RenderSettings.split_order must be 4, 6 or 8, got {self.split_order!r}"
+            )
         for name, lo, hi in (("split_spacing", 1, 64), ("split_min_members", 1, 1 << 30)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"RenderSettings.{name} must be an int in [{lo}, {hi}], got {v!r}")
         if self.batching not in ("auto", "per_image", "sub_batch"):
-            raise ValueError(f"RenderSettings.batching must be 'auto', 'per_image' or 'sub_batch', got {self.batching!r}")
+            raise ValueError(
+                "RenderSettings.batching must be 'auto', 'per_image' or 'sub_batch', got "
+                f"{self.batching!r}"
+            )
         if not self.dtype.is_floating_point:
             raise ValueError(f"RenderSettings.dtype must be a floating dtype, got {self.dtype}")
 

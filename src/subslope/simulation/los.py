@@ -59,11 +59,9 @@ __all__ = [
 ]
 
 
-
 # --------------------------------------------------------------------------------------
 # configuration and containers
 # --------------------------------------------------------------------------------------
-
 
 
 @dataclass(frozen=True)
@@ -144,7 +142,9 @@ class LosPopulation:
         for name in ("z", "x", "y", "m200", "amp", "gamma", "e1", "e2", "c200", "r_s", "alpha_rs"):
             value = getattr(self, name)
             if value is not None and len(value) != n:
-                raise ValueError(f"LosPopulation.{name} has {len(value)} entries, counts sum to {n}")
+                raise ValueError(
+                    f"LosPopulation.{name} has {len(value)} entries, counts sum to {n}"
+                )
 
     @property
     def offsets(self) -> np.ndarray:
@@ -293,10 +293,15 @@ def _group_planes(z: np.ndarray, z_source_halo: np.ndarray):
     uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
     order = np.argsort(inverse.ravel(), kind="stable")
     bounds = np.searchsorted(inverse.ravel()[order], np.arange(uniq.shape[0] + 1))
-    return [(float(uniq[k, 0]), float(uniq[k, 1]), order[bounds[k]:bounds[k + 1]]) for k in range(uniq.shape[0])]
+    return [
+        (float(uniq[k, 0]), float(uniq[k, 1]), order[bounds[k] : bounds[k + 1]])
+        for k in range(uniq.shape[0])
+    ]
 
 
-def los_profiles(batch: LosBatch, scene, macro: dict, rng: np.random.Generator, *, cosmo=None) -> LosPopulation:
+def los_profiles(
+    batch: LosBatch, scene, macro: dict, rng: np.random.Generator, *, cosmo=None
+) -> LosPopulation:
     """Attach lens-profile parameters to sampled LoS halos (a rendering-ready population).
 
     Parameters
@@ -331,9 +336,14 @@ def los_profiles(batch: LosBatch, scene, macro: dict, rng: np.random.Generator, 
     sys = np.repeat(np.arange(n_sys), counts)
     n = int(counts.sum())
     profile = scene.los.profile
-    out = dict(profile=profile, counts=counts, z=np.asarray(batch.z, np.float64),
-               x=np.asarray(batch.x, np.float64), y=np.asarray(batch.y, np.float64),
-               m200=np.asarray(batch.m200, np.float64))
+    out = dict(
+        profile=profile,
+        counts=counts,
+        z=np.asarray(batch.z, np.float64),
+        x=np.asarray(batch.x, np.float64),
+        y=np.asarray(batch.y, np.float64),
+        m200=np.asarray(batch.m200, np.float64),
+    )
     groups = _group_planes(out["z"], z_source[sys])
     if profile == "epl":
         if "gamma_sub" not in macro:
@@ -353,11 +363,14 @@ def los_profiles(batch: LosBatch, scene, macro: dict, rng: np.random.Generator, 
             mult = np.broadcast_to(np.asarray(macro["c_multiplier"], dtype=np.float64), (n_sys,))
         c200 = (
             mult[sys] * _conc.sample_c200(out["m200"], out["z"], rng, 1.0, conc.scatter_dex)
-            if n else np.zeros(0)
+            if n
+            else np.zeros(0)
         )
         r_s, alpha = np.empty(n), np.empty(n)
         for z_h, z_s, idx in groups:
-            r_s[idx], alpha[idx] = _cosmology.nfw_params_from_m200_c(out["m200"][idx], c200[idx], z_h, z_s, cosmo)
+            r_s[idx], alpha[idx] = _cosmology.nfw_params_from_m200_c(
+                out["m200"][idx], c200[idx], z_h, z_s, cosmo
+            )
         out.update(c200=c200, r_s=r_s, alpha_rs=alpha)
     else:  # pragma: no cover - Scene validates the profile
         raise ValueError(f"scene.los.profile = {profile!r} must be 'epl' or 'nfw'")

@@ -92,6 +92,7 @@ class LosConfig:
                 f"n_two_halo_quad must be an integer >= 2, got {self.n_two_halo_quad!r}"
             )
 
+
 # --------------------------------------------------------------------------------------
 # validation helpers
 # --------------------------------------------------------------------------------------
@@ -216,9 +217,7 @@ def cone_radius_arcsec(
     return radius
 
 
-def slice_volumes(
-    z_lens: float, z_source: float, config: LosConfig = DEFAULT_CONFIG
-) -> np.ndarray:
+def slice_volumes(z_lens: float, z_source: float, config: LosConfig = DEFAULT_CONFIG) -> np.ndarray:
     """Comoving volume [Mpc³] of each slice of the cone (see :func:`slice_redshifts`).
 
     V = π (D_M(z_mid) θ(z_mid))² (D_C(z_lo + dz) − D_C(z_lo)), θ in radians.

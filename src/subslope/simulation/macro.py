@@ -86,7 +86,9 @@ def sample_macro(
         raise ValueError(f"n = {n!r} must be a positive integer number of images")
     k = scene.images_per_set
     if n % k:
-        raise ValueError(f"n = {n} must be a multiple of images_per_set = {k} of scene {scene.name!r}")
+        raise ValueError(
+            f"n = {n} must be a multiple of images_per_set = {k} of scene {scene.name!r}"
+        )
     n_sets = n // k
     comp = scene.components
     on = {
@@ -115,7 +117,9 @@ def sample_macro(
                     "pass multiplier=<one of them>"
                 )
             multiplier = mults[0]
-        if not (isinstance(multiplier, (int, float)) and math.isfinite(multiplier) and multiplier > 0):
+        if not (
+            isinstance(multiplier, (int, float)) and math.isfinite(multiplier) and multiplier > 0
+        ):
             raise ValueError(f"multiplier = {multiplier!r} must be a finite number > 0")
         out["c_multiplier"] = np.full(n, float(multiplier))
     out["set_index"] = np.repeat(np.arange(n_sets, dtype=np.int64), k)
@@ -125,8 +129,9 @@ def sample_macro(
     return out
 
 
-def _sample_multi_sersic(src: SourceSpec, drawn: dict[str, np.ndarray], n: int,
-                         rng: np.random.Generator) -> dict[str, np.ndarray]:
+def _sample_multi_sersic(
+    src: SourceSpec, drawn: dict[str, np.ndarray], n: int, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
     """Multi-Sérsic keys (:func:`multi_sersic_keys`): body = the Sérsic draw, then clumps."""
     ms = src.multi_sersic
     kmax = ms.max_components
@@ -134,12 +139,22 @@ def _sample_multi_sersic(src: SourceSpec, drawn: dict[str, np.ndarray], n: int,
     out: dict[str, np.ndarray] = {"src_mag_total": drawn["src_mag"], "src_ncomp": ncomp}
     weights = np.zeros((kmax, n))
     weights[0] = 1.0
-    comps = [{"r": drawn["src_r"], "n": drawn["src_n"], "e1": drawn["src_e1"], "e2": drawn["src_e2"],
-              "dx": np.zeros(n), "dy": np.zeros(n)}]
+    comps = [
+        {
+            "r": drawn["src_r"],
+            "n": drawn["src_n"],
+            "e1": drawn["src_e1"],
+            "e2": drawn["src_e2"],
+            "dx": np.zeros(n),
+            "dy": np.zeros(n),
+        }
+    ]
     for j in range(1, kmax):  # every slot drawn for every image: fixed stream layout
         share = ms.share.sample(rng, n)
-        c = {p: getattr(ms, a).sample(rng, n) for p, a in
-             (("r", "r_sersic"), ("n", "n_sersic"), ("e1", "e1"), ("e2", "e2"))}
+        c = {
+            p: getattr(ms, a).sample(rng, n)
+            for p, a in (("r", "r_sersic"), ("n", "n_sersic"), ("e1", "e1"), ("e2", "e2"))
+        }
         rad, ang = ms.offset.sample(rng, n), ms.offset_angle.sample(rng, n)
         c["dx"], c["dy"] = rad * np.cos(ang), rad * np.sin(ang)
         weights[j] = np.where(j < ncomp, share, 0.0)

@@ -216,7 +216,9 @@ class Normal(Prior):
         low, high = kw.get("low", -math.inf), kw.get("high", math.inf)
         _check_order(low, high, key)
         a, b = (low - kw["mean"]) / kw["std"], (high - kw["mean"]) / kw["std"]
-        mass = stats.norm.sf(a) - stats.norm.sf(b) if a > 0 else stats.norm.cdf(b) - stats.norm.cdf(a)
+        mass = (
+            stats.norm.sf(a) - stats.norm.sf(b) if a > 0 else stats.norm.cdf(b) - stats.norm.cdf(a)
+        )
         if not mass > 0.0:  # only when the interval lies ~38 std or more away
             raise PriorError(
                 f"config key {key}: the bounds [{low!r}, {high!r}] leave no probability mass "

@@ -28,7 +28,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-
 from subslope.simulation.priors import PowerLaw, Prior, PriorError
 
 __all__ = [
@@ -83,7 +82,9 @@ def _load_presets() -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
 
     import yaml
 
-    text = (importlib_resources.files("subslope") / "schemas" / "scene_presets.yaml").read_text(encoding="utf-8")
+    text = (importlib_resources.files("subslope") / "schemas" / "scene_presets.yaml").read_text(
+        encoding="utf-8"
+    )
     doc = yaml.safe_load(text)
     return doc["paper_scene"], doc["presets"]
 
@@ -127,7 +128,9 @@ def _prior(d: Mapping[str, Any], k: str, key: str) -> Prior:
 
 def _choice(value: Any, allowed: tuple[str, ...], key: str) -> str:
     if value not in allowed:
-        raise SceneError(f"config key {key} = {value!r} is not allowed; allowed: {', '.join(allowed)}")
+        raise SceneError(
+            f"config key {key} = {value!r} is not allowed; allowed: {', '.join(allowed)}"
+        )
     return value
 
 
@@ -137,7 +140,9 @@ def _real(value: Any, key: str, lo: float, hi: float, lo_open=False, hi_open=Fal
         ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
     if not ok:
         left, right = "(" if lo_open else "[", ")" if hi_open else "]"
-        raise SceneError(f"config key {key} = {value!r} must be a number in {left}{lo}, {hi}{right}")
+        raise SceneError(
+            f"config key {key} = {value!r} must be a number in {left}{lo}, {hi}{right}"
+        )
     return float(value)
 
 
@@ -159,14 +164,34 @@ def _within(p: Prior, key: str, lo: float, hi: float) -> Prior:
 def _multi_sersic(d: Any, key: str) -> MultiSersicSpec:
     if not isinstance(d, Mapping):
         raise SceneError(f"config key {key} = {d!r} must be a mapping")
-    spec = MultiSersicSpec(**{p: _prior(d, p, key) for p in (
-        "n_components", "share", "r_sersic", "n_sersic", "e1", "e2", "offset", "offset_angle")})
+    spec = MultiSersicSpec(
+        **{
+            p: _prior(d, p, key)
+            for p in (
+                "n_components",
+                "share",
+                "r_sersic",
+                "n_sersic",
+                "e1",
+                "e2",
+                "offset",
+                "offset_angle",
+            )
+        }
+    )
     nc = spec.n_components
     lo, hi = nc.support
-    if nc.dist not in ("uniform_int", "fixed") or lo != int(lo) or hi != int(hi) or lo < 1 \
-            or hi > MAX_SOURCE_COMPONENTS:
-        raise SceneError(f"config key {key}.n_components must be a uniform_int prior or a fixed integer "
-                         f"within [1, {MAX_SOURCE_COMPONENTS}]")
+    if (
+        nc.dist not in ("uniform_int", "fixed")
+        or lo != int(lo)
+        or hi != int(hi)
+        or lo < 1
+        or hi > MAX_SOURCE_COMPONENTS
+    ):
+        raise SceneError(
+            f"config key {key}.n_components must be a uniform_int prior or a fixed integer "
+            f"within [1, {MAX_SOURCE_COMPONENTS}]"
+        )
     _within(spec.share, f"{key}.share", 0.0, math.inf)
     _within(spec.r_sersic, f"{key}.r_sersic", 1e-6, math.inf)
     _within(spec.n_sersic, f"{key}.n_sersic", 0.2, 10.0)
@@ -349,32 +374,56 @@ class Scene:
     def has_label(self) -> bool:
         """True when images carry the label γ (EPL subhalos or EPL LoS halos are on)."""
         c = self.components
-        return (c.subhalos and self.subhalos.profile == "epl") or (c.los and self.los.profile == "epl")
+        return (c.subhalos and self.subhalos.profile == "epl") or (
+            c.los and self.los.profile == "epl"
+        )
 
     @property
     def uses_concentration(self) -> bool:
         """True when some active component is NFW/tNFW (a CDM scene)."""
         c = self.components
-        return (c.subhalos and self.subhalos.profile != "epl") or (c.los and self.los.profile == "nfw")
+        return (c.subhalos and self.subhalos.profile != "epl") or (
+            c.los and self.los.profile == "nfw"
+        )
 
     @classmethod
-    def from_config(cls, name: str, spec: Mapping[str, Any] | None = None, key: str | None = None) -> Scene:
+    def from_config(
+        cls, name: str, spec: Mapping[str, Any] | None = None, key: str | None = None
+    ) -> Scene:
         """Build a scene from its config mapping merged onto the preset for ``name``."""
         key = key or f"scenes.{name}"
         if not isinstance(name, str) or not name:
             raise SceneError(f"scene name {name!r} must be a non-empty string")
         d = _merge(preset(name), spec or {}, key)
-        comp = Components(**{k: _bool(v, f"{key}.components.{k}") for k, v in d["components"].items()})
+        comp = Components(
+            **{k: _bool(v, f"{key}.components.{k}") for k, v in d["components"].items()}
+        )
         ips = d["images_per_set"]
         if isinstance(ips, bool) or not isinstance(ips, int) or not 1 <= ips <= 1000:
-            raise SceneError(f"config key {key}.images_per_set = {ips!r} must be an integer in [1, 1000]")
-        mp = MultipoleSpec(**{p: _prior(d["multipoles"], p, f"{key}.multipoles") for p in ("a3", "phi3", "a4", "phi4")})
+            raise SceneError(
+                f"config key {key}.images_per_set = {ips!r} must be an integer in [1, 1000]"
+            )
+        mp = MultipoleSpec(
+            **{
+                p: _prior(d["multipoles"], p, f"{key}.multipoles")
+                for p in ("a3", "phi3", "a4", "phi4")
+            }
+        )
         sh = ShearSpec(**{p: _prior(d["shear"], p, f"{key}.shear") for p in ("g1", "g2")})
-        return cls(name, comp, ips, _redshifts_spec(d["redshifts"], f"{key}.redshifts"),
-                   _source_spec(d["source"], f"{key}.source"), _main_lens_spec(d["main_lens"], f"{key}.main_lens"),
-                   mp, sh, _lens_light_spec(d["lens_light"], f"{key}.lens_light"),
-                   _subhalo_spec(d["subhalos"], f"{key}.subhalos"), _los_spec(d["los"], f"{key}.los"),
-                   _concentration_spec(d["concentration"], f"{key}.concentration"))
+        return cls(
+            name,
+            comp,
+            ips,
+            _redshifts_spec(d["redshifts"], f"{key}.redshifts"),
+            _source_spec(d["source"], f"{key}.source"),
+            _main_lens_spec(d["main_lens"], f"{key}.main_lens"),
+            mp,
+            sh,
+            _lens_light_spec(d["lens_light"], f"{key}.lens_light"),
+            _subhalo_spec(d["subhalos"], f"{key}.subhalos"),
+            _los_spec(d["los"], f"{key}.los"),
+            _concentration_spec(d["concentration"], f"{key}.concentration"),
+        )
 
 
 # ----------------------------------------------------------------- sections of a scene
@@ -394,7 +443,10 @@ def _source_spec(s: Mapping[str, Any], k: str) -> SourceSpec:
     src = SourceSpec(
         kind=_choice(s["kind"], SOURCE_KINDS, f"{k}.kind"),
         split=_choice(s["split"], COSMOS_SPLITS, f"{k}.split"),
-        **{p: _prior(s, p, k) for p in ("x", "y", "rotation", "mag", "r_sersic", "n_sersic", "e1", "e2")},
+        **{
+            p: _prior(s, p, k)
+            for p in ("x", "y", "rotation", "mag", "r_sersic", "n_sersic", "e1", "e2")
+        },
         multi_sersic=_multi_sersic(s["multi_sersic"], f"{k}.multi_sersic"),
     )
     _within(src.r_sersic, f"{k}.r_sersic", 1e-6, math.inf)
@@ -412,7 +464,9 @@ def _main_lens_spec(m: Mapping[str, Any], k: str) -> MainLensSpec:
 
 
 def _lens_light_spec(ll: Mapping[str, Any], k: str) -> LensLightSpec:
-    light = LensLightSpec(**{p: _prior(ll, p, k) for p in ("mag", "r_sersic", "n_sersic", "e1", "e2")})
+    light = LensLightSpec(
+        **{p: _prior(ll, p, k) for p in ("mag", "r_sersic", "n_sersic", "e1", "e2")}
+    )
     _within(light.r_sersic, f"{k}.r_sersic", 1e-6, math.inf)
     _within(light.n_sersic, f"{k}.n_sersic", 0.2, 10.0)
     return light
@@ -420,9 +474,12 @@ def _lens_light_spec(ll: Mapping[str, Any], k: str) -> LensLightSpec:
 
 def _subhalo_mass_prior(mass: Any, k: str) -> Prior:
     if not isinstance(mass, Mapping) or set(mass) != {"slope", "m_min", "m_max"}:
-        raise SceneError(f"config key {k}.mass = {mass!r} must be a mapping with keys slope, m_min, m_max")
+        raise SceneError(
+            f"config key {k}.mass = {mass!r} must be a mapping with keys slope, m_min, m_max"
+        )
     prior = Prior.from_config(
-        {"dist": "power_law", "slope": mass["slope"], "low": mass["m_min"], "high": mass["m_max"]}, f"{k}.mass"
+        {"dist": "power_law", "slope": mass["slope"], "low": mass["m_min"], "high": mass["m_max"]},
+        f"{k}.mass",
     )
     _within(prior, f"{k}.mass", 1e3, 1e15)
     return prior
@@ -440,8 +497,10 @@ def _gamma_bounds(bounds: Any, k: str) -> tuple[float, float]:
 
 def _subhalo_spec(sub: Mapping[str, Any], k: str) -> SubhaloSpec:
     count = _prior(sub, "count", k)
-    if count.dist not in ("uniform_int", "fixed") or count.support[0] < 0 or (
-        count.dist == "fixed" and count.support[0] != int(count.support[0])
+    if (
+        count.dist not in ("uniform_int", "fixed")
+        or count.support[0] < 0
+        or (count.dist == "fixed" and count.support[0] != int(count.support[0]))
     ):
         raise SceneError(
             f"config key {k}.count must be a uniform_int prior or a fixed non-negative integer"
@@ -459,7 +518,9 @@ def _subhalo_spec(sub: Mapping[str, Any], k: str) -> SubhaloSpec:
         e2=_within(_prior(sub, "e2", k), f"{k}.e2", -1.0, 1.0),
         profile=_choice(sub["profile"], SUBHALO_PROFILES, f"{k}.profile"),
         placement=_choice(sub["placement"], PLACEMENTS, f"{k}.placement"),
-        threshold_fraction=_real(sub["threshold_fraction"], f"{k}.threshold_fraction", 0.0, 1.0, True, True),
+        threshold_fraction=_real(
+            sub["threshold_fraction"], f"{k}.threshold_fraction", 0.0, 1.0, True, True
+        ),
     )
 
 
@@ -471,16 +532,22 @@ def _los_spec(lo_d: Mapping[str, Any], k: str) -> LosSpec:
         m_max=_real(lo_d["m_max"], f"{k}.m_max", 1e3, 1e15),
     )
     if los.m_min >= los.m_max:
-        raise SceneError(f"config key {k}.m_min = {los.m_min!r} must be < {k}.m_max = {los.m_max!r}")
+        raise SceneError(
+            f"config key {k}.m_min = {los.m_min!r} must be < {k}.m_max = {los.m_max!r}"
+        )
     return los
 
 
 def _concentration_spec(c: Mapping[str, Any], k: str) -> ConcentrationSpec:
     mult = c["multipliers"]
     if not isinstance(mult, (list, tuple)) or not mult:
-        raise SceneError(f"config key {k}.multipliers = {mult!r} must be a non-empty list of numbers > 0")
+        raise SceneError(
+            f"config key {k}.multipliers = {mult!r} must be a non-empty list of numbers > 0"
+        )
     return ConcentrationSpec(
-        multipliers=tuple(_real(a, f"{k}.multipliers[{i}]", 0.0, 1e3, lo_open=True) for i, a in enumerate(mult)),
+        multipliers=tuple(
+            _real(a, f"{k}.multipliers[{i}]", 0.0, 1e3, lo_open=True) for i, a in enumerate(mult)
+        ),
         scatter_dex=_real(c["scatter_dex"], f"{k}.scatter_dex", 0.0, 1.0),
         apply_to_los=_bool(c["apply_to_los"], f"{k}.apply_to_los"),
     )
@@ -528,7 +595,9 @@ def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]
         "instrument": config["instrument"],
         "cosmology": config["cosmology"],
         "scene": spec,
-        "images_per_shard": sim["scenes"][scene]["images_per_shard"] if scene in sim["scenes"] else None,
+        "images_per_shard": sim["scenes"][scene]["images_per_shard"]
+        if scene in sim["scenes"]
+        else None,
         "multipliers": sim["multipliers"],
         "render": render,
         "sources": sim["sources"],

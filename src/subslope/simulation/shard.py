@@ -15,7 +15,8 @@
 4. **Per batch** of ``simulation.render.batch_size`` images: the smooth model
    (:func:`subslope.render.pipeline.render_smooth`) when subhalos go on the arc; subhalos
    (:func:`subslope.simulation.subhalos.sample_subhalos`); LoS halos
-   (:func:`subslope.simulation.los.sample_los_batch` + :func:`subslope.simulation.los.los_profiles`); the
+   (:func:`subslope.simulation.los.sample_los_batch` +
+   :func:`subslope.simulation.los.los_profiles`); the
    noise-free image (:func:`subslope.render.pipeline.render`); noise
    (:func:`subslope.physics.instrument.add_noise` with the image's seed).
 
@@ -39,16 +40,22 @@ from typing import Any
 import numpy as np
 import torch
 
+from subslope import config as _config
 from subslope._version import __version__
 from subslope.devices import pick_device
-from subslope import config as _config
-from subslope.simulation import macro as _macro
-from subslope.simulation.scenes import resolved_scene, scene_multipliers, simulation_sections
 from subslope.io import shards as _shards
+from subslope.io.cosmos import (
+    CosmosCatalog,
+    CosmosCuts,
+    normalize_to_magnitude,
+    place_at_redshift,
+    split_idents,
+)
 from subslope.physics.instrument import Instrument, add_noise, gaussian_psf, load_empirical_psf
 from subslope.physics.light.pixelated import pad_stamps
+from subslope.simulation import macro as _macro
 from subslope.simulation.los import LosConfig, LosPopulation, los_profiles, sample_los_batch
-from subslope.io.cosmos import CosmosCatalog, CosmosCuts, normalize_to_magnitude, place_at_redshift, split_idents
+from subslope.simulation.scenes import resolved_scene, scene_multipliers, simulation_sections
 from subslope.simulation.subhalos import SubhaloPopulation, sample_subhalos
 
 __all__ = [
@@ -78,10 +85,14 @@ def scene_id(name: str) -> int:
     return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
 
 
-def shard_seed_sequence(seed: int, scene: str, shard: int, multiplier_index: int | None = None) -> np.random.SeedSequence:
+def shard_seed_sequence(
+    seed: int, scene: str, shard: int, multiplier_index: int | None = None
+) -> np.random.SeedSequence:
     """The SeedSequence of one shard: entropy = global seed, spawn key = (scene id,
     shard[, multiplier index])."""
-    key = (scene_id(scene), int(shard)) + (() if multiplier_index is None else (int(multiplier_index),))
+    key = (scene_id(scene), int(shard)) + (
+        () if multiplier_index is None else (int(multiplier_index),)
+    )
     return np.random.SeedSequence(entropy=int(seed), spawn_key=key)
 
 
@@ -91,14 +102,20 @@ def shard_seed_sequence(seed: int, scene: str, shard: int, multiplier_index: int
 def build_instrument(config: Mapping[str, Any]) -> Instrument:
     inst = config["instrument"]
     return Instrument(
-        exposure_time=float(inst["exposure_time"]), ccd_gain=float(inst["ccd_gain"]),
-        read_noise=float(inst["read_noise"]), sky_brightness=float(inst["sky_brightness"]),
-        magnitude_zero_point=float(inst["zero_point"]), num_exposures=int(inst["num_exposures"]),
-        pixel_scale=float(inst["pixel_scale"]), psf_fwhm=float(inst["psf"]["fwhm"]),
+        exposure_time=float(inst["exposure_time"]),
+        ccd_gain=float(inst["ccd_gain"]),
+        read_noise=float(inst["read_noise"]),
+        sky_brightness=float(inst["sky_brightness"]),
+        magnitude_zero_point=float(inst["zero_point"]),
+        num_exposures=int(inst["num_exposures"]),
+        pixel_scale=float(inst["pixel_scale"]),
+        psf_fwhm=float(inst["psf"]["fwhm"]),
     )
 
 
-def build_psf(config: Mapping[str, Any], *, resources_dir: str | os.PathLike[str] | None = None) -> np.ndarray:
+def build_psf(
+    config: Mapping[str, Any], *, resources_dir: str | os.PathLike[str] | None = None
+) -> np.ndarray:
     """PSF kernel (float64, sum 1) from ``instrument.psf``: the empirical file under the
     resources folder, or the Gaussian fallback."""
     inst = config["instrument"]
@@ -108,9 +125,13 @@ def build_psf(config: Mapping[str, Any], *, resources_dir: str | os.PathLike[str
     folder = Path(resources_dir if resources_dir is not None else config["data"]["resources_dir"])
     path = folder / psf["file"]
     if not path.is_file():
-        raise FileNotFoundError(f"PSF file {path} (instrument.psf.file under data.resources_dir) not found")
+        raise FileNotFoundError(
+            f"PSF file {path} (instrument.psf.file under data.resources_dir) not found"
+        )
     which = "mean" if psf["index"] is None else int(psf["index"])
-    return load_empirical_psf(path, which, supersampling=int(psf["supersampling"]), dtype=torch.float64).numpy()
+    return load_empirical_psf(
+        path, which, supersampling=int(psf["supersampling"]), dtype=torch.float64
+    ).numpy()
 
 
 def render_settings(config: Mapping[str, Any]):
@@ -160,26 +181,44 @@ def source_split(config: Mapping[str, Any], split: str) -> tuple[CosmosCatalog, 
     src = config["simulation"]["sources"]
     catalog = _catalog(str(cosmos_folder(config)))
     c = src["cuts"]
-    selected = catalog.select(CosmosCuts(c["mag_max"], c["min_stamp_side"], c["min_flux_radius"],
-                                         c["zphot_max"], tuple(c.get("exclude", ()))))
+    selected = catalog.select(
+        CosmosCuts(
+            c["mag_max"],
+            c["min_stamp_side"],
+            c["min_flux_radius"],
+            c["zphot_max"],
+            tuple(c.get("exclude", ())),
+        )
+    )
     s = src["split"]
     if s.get("ids"):
         ids = np.asarray(s["ids"].get(split, []), dtype=np.int64)
         missing = ids[~np.isin(ids, selected.idents)]
         if missing.size:
-            raise ValueError(f"config key simulation.sources.split.ids.{split}: IDENT(s) {missing.tolist()} "
-                             "are not among the selected COSMOS galaxies")
+            raise ValueError(
+                f"config key simulation.sources.split.ids.{split}: IDENT(s) {missing.tolist()} "
+                "are not among the selected COSMOS galaxies"
+            )
     else:
-        ids = split_idents(selected.idents, {k: s[k] for k in ("train", "validation", "test")}, s["salt"])[split]
+        ids = split_idents(
+            selected.idents, {k: s[k] for k in ("train", "validation", "test")}, s["salt"]
+        )[split]
     if ids.size == 0:
         raise ValueError(f"the COSMOS split {split!r} is empty (simulation.sources.split)")
     return selected, ids
 
 
-def _place(catalog: CosmosCatalog, ident: int, z_source: float, zero_point: float, mag: float | None):
+def _place(
+    catalog: CosmosCatalog, ident: int, z_source: float, zero_point: float, mag: float | None
+):
     row = catalog.table.loc[catalog.table["ident"] == int(ident)].iloc[0]
-    sb, pix = place_at_redshift(catalog.stamp(int(ident)), float(row["pixel_scale"]), float(row["zphot"]),
-                                float(z_source), zero_point_out=zero_point)
+    sb, pix = place_at_redshift(
+        catalog.stamp(int(ident)),
+        float(row["pixel_scale"]),
+        float(row["zphot"]),
+        float(z_source),
+        zero_point_out=zero_point,
+    )
     if mag is not None and np.isfinite(mag):
         sb = normalize_to_magnitude(sb, pix, float(mag), zero_point)
     return sb, pix, float(row["zphot"])
@@ -192,8 +231,11 @@ def _pixelated_sources(stamps: Sequence[np.ndarray], pixel_scales, pad_shape, se
 
     filler = np.zeros(tuple(int(v) for v in pad_shape))
     padded, offsets = pad_stamps(list(stamps) + [filler], dtype=settings.dtype, device="cpu")
-    return PixelatedSources(stamps=padded[:-1], offsets=offsets[:-1],
-                            pixel_scale=np.asarray(pixel_scales, dtype=np.float64))
+    return PixelatedSources(
+        stamps=padded[:-1],
+        offsets=offsets[:-1],
+        pixel_scale=np.asarray(pixel_scales, dtype=np.float64),
+    )
 
 
 def _concat_subhalos(pops: Sequence[SubhaloPopulation]) -> SubhaloPopulation:
@@ -218,13 +260,21 @@ def _concat_los(pops: Sequence[LosPopulation]) -> LosPopulation:
 
 
 def _pop_arrays(pop) -> dict[str, np.ndarray]:
-    return {f.name: getattr(pop, f.name) for f in dataclasses.fields(pop)
-            if f.name != "profile" and getattr(pop, f.name) is not None}
+    return {
+        f.name: getattr(pop, f.name)
+        for f in dataclasses.fields(pop)
+        if f.name != "profile" and getattr(pop, f.name) is not None
+    }
 
 
 # ------------------------------------------------------------------------- simulation
-def _draw_sources(config: Mapping[str, Any], sc, macro: Mapping[str, np.ndarray], rng: np.random.Generator,
-                  zero_point: float) -> tuple[dict[str, np.ndarray], list[np.ndarray], tuple[int, int] | None]:
+def _draw_sources(
+    config: Mapping[str, Any],
+    sc,
+    macro: Mapping[str, np.ndarray],
+    rng: np.random.Generator,
+    zero_point: float,
+) -> tuple[dict[str, np.ndarray], list[np.ndarray], tuple[int, int] | None]:
     """One COSMOS galaxy per image (uniform over the scene's split), placed at its
     z_source: ``(per-image source records, stamps, padded stamp shape)``; nothing for a
     parametric source."""
@@ -239,8 +289,9 @@ def _draw_sources(config: Mapping[str, Any], sc, macro: Mapping[str, np.ndarray]
     zphot = np.empty(n)
     stamps = []
     for i in range(n):
-        sb, pix[i], zphot[i] = _place(catalog, pick[i], macro["z_source"][i], zero_point,
-                                      None if mags is None else mags[i])
+        sb, pix[i], zphot[i] = _place(
+            catalog, pick[i], macro["z_source"][i], zero_point, None if mags is None else mags[i]
+        )
         stamps.append(sb)
     pad_shape = (int(catalog.table["ny"].max()), int(catalog.table["nx"].max()))
     sources = {"ident": pick.astype(np.int64), "z_phot": zphot, "pixel_scale": pix}
@@ -260,8 +311,9 @@ class _Draws:
     pixel_scale: float
 
 
-def _draw_populations(sc, macro: Mapping[str, np.ndarray], idx: range, smooth: np.ndarray | None,
-                      draws: _Draws) -> tuple[SubhaloPopulation | None, LosPopulation | None]:
+def _draw_populations(
+    sc, macro: Mapping[str, np.ndarray], idx: range, smooth: np.ndarray | None, draws: _Draws
+) -> tuple[SubhaloPopulation | None, LosPopulation | None]:
     """Subhalos (on the arc of the smooth models ``smooth`` when the scene places them
     there) and line-of-sight halos of images ``idx``, each from its own stream."""
     comp = sc.components
@@ -269,18 +321,32 @@ def _draw_populations(sc, macro: Mapping[str, np.ndarray], idx: range, smooth: n
     if comp.subhalos:
         parts = []
         for j, i in enumerate(idx):
-            m_i = {k: v[i:i + 1] for k, v in macro.items()}
-            parts.append(sample_subhalos(sc, m_i, np.random.default_rng(draws.sub_streams[i]),
-                                         None if smooth is None else smooth[j:j + 1],
-                                         npix=draws.npix, pixel_scale=draws.pixel_scale))
+            m_i = {k: v[i : i + 1] for k, v in macro.items()}
+            parts.append(
+                sample_subhalos(
+                    sc,
+                    m_i,
+                    np.random.default_rng(draws.sub_streams[i]),
+                    None if smooth is None else smooth[j : j + 1],
+                    npix=draws.npix,
+                    pixel_scale=draws.pixel_scale,
+                )
+            )
         subs = _concat_subhalos(parts)
     if comp.los:
         parts = []
         for i in idx:
             rng = np.random.default_rng(draws.los_streams[i])
-            m_i = {k: v[i:i + 1] for k, v in macro.items()}
-            batch = sample_los_batch(m_i["z_lens"], m_i["z_source"], m_i["theta_e"], m_i["gamma_ml"],
-                                     m_i["delta_los"], rng, draws.los_config)
+            m_i = {k: v[i : i + 1] for k, v in macro.items()}
+            batch = sample_los_batch(
+                m_i["z_lens"],
+                m_i["z_source"],
+                m_i["theta_e"],
+                m_i["gamma_ml"],
+                m_i["delta_los"],
+                rng,
+                draws.los_config,
+            )
             parts.append(los_profiles(batch, sc, m_i, rng))
         lpop = _concat_los(parts)
     return subs, lpop
@@ -308,18 +374,35 @@ def simulate_images(
     sc, _ = resolved_scene(config, scene)
     streams = dict(zip(STREAMS, seed_sequence.spawn(len(STREAMS))))
     t0 = time.perf_counter()
-    macro = _macro.sample_macro(sc, n, np.random.default_rng(streams["macro"]), multiplier=multiplier)
+    macro = _macro.sample_macro(
+        sc, n, np.random.default_rng(streams["macro"]), multiplier=multiplier
+    )
     settings = render_settings(config)
     psf64 = build_psf(config)
     psf = torch.as_tensor(psf64, dtype=settings.dtype, device=settings.device)
     inst = build_instrument(config)
-    sources, stamps, pad_shape = _draw_sources(config, sc, macro, np.random.default_rng(streams["sources"]),
-                                               float(config["instrument"]["zero_point"]))
-    timing = {"setup": time.perf_counter() - t0, "smooth": 0.0, "sampling": 0.0, "render": 0.0, "noise": 0.0}
+    sources, stamps, pad_shape = _draw_sources(
+        config,
+        sc,
+        macro,
+        np.random.default_rng(streams["sources"]),
+        float(config["instrument"]["zero_point"]),
+    )
+    timing = {
+        "setup": time.perf_counter() - t0,
+        "smooth": 0.0,
+        "sampling": 0.0,
+        "render": 0.0,
+        "noise": 0.0,
+    }
 
-    draws = _Draws(streams["subhalos"].spawn(n), streams["los"].spawn(n),
-                   LosConfig(m_min=sc.los.m_min, m_max=sc.los.m_max), int(config["instrument"]["npix"]),
-                   float(config["instrument"]["pixel_scale"]))
+    draws = _Draws(
+        streams["subhalos"].spawn(n),
+        streams["los"].spawn(n),
+        LosConfig(m_min=sc.los.m_min, m_max=sc.los.m_max),
+        int(config["instrument"]["npix"]),
+        float(config["instrument"]["pixel_scale"]),
+    )
     noise_seed = streams["noise"].generate_state(n, dtype=np.uint64)
     comp = sc.components
     bs = int(config["simulation"]["render"]["batch_size"])
@@ -331,7 +414,11 @@ def simulate_images(
         sl = slice(start, min(start + bs, n))
         idx = range(sl.start, sl.stop)
         m_b = {k: v[sl] for k, v in macro.items()}
-        src_b = _pixelated_sources(stamps[sl], sources["pixel_scale"][sl], pad_shape, settings) if stamps else None
+        src_b = (
+            _pixelated_sources(stamps[sl], sources["pixel_scale"][sl], pad_shape, settings)
+            if stamps
+            else None
+        )
 
         t = time.perf_counter()
         smooth = None
@@ -359,10 +446,15 @@ def simulate_images(
     empty = {"counts": np.zeros(n, dtype=np.int64)}
     timing["total"] = time.perf_counter() - t0
     return {
-        "images": images, "params": params, "sources": sources,
+        "images": images,
+        "params": params,
+        "sources": sources,
         "subhalos": _pop_arrays(_concat_subhalos(sub_pops)) if comp.subhalos else empty,
         "los": _pop_arrays(_concat_los(los_pops)) if comp.los else dict(empty),
-        "psf": psf64, "settings": settings, "timings": timing, "pad_shape": pad_shape,
+        "psf": psf64,
+        "settings": settings,
+        "timings": timing,
+        "pad_shape": pad_shape,
         "subhalo_profile": sc.subhalos.profile if comp.subhalos else "none",
         "los_profile": sc.los.profile if comp.los else "none",
     }
@@ -372,7 +464,11 @@ def _observe(images: np.ndarray, clean, idx: range, noise_seed: np.ndarray | Non
     """Images ``idx`` with their detector noise (each from its own seed; none when
     ``noise_seed`` is None), as float32 into ``images``."""
     for j, i in enumerate(idx):
-        img = add_noise(clean[j], int(noise_seed[i]), instrument=inst) if noise_seed is not None else clean[j]
+        img = (
+            add_noise(clean[j], int(noise_seed[i]), instrument=inst)
+            if noise_seed is not None
+            else clean[j]
+        )
         images[i] = img.detach().cpu().numpy().astype(np.float32)
 
 
@@ -404,26 +500,44 @@ def simulate_shard(
         raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
     counts = config["simulation"]["scenes"].get(scene)
     if counts is None:
-        raise ValueError(f"scene {scene!r} has no entry in simulation.scenes (known: {sorted(config['simulation']['scenes'])})")
+        raise ValueError(
+            f"scene {scene!r} has no entry in simulation.scenes (known: "
+            f"{sorted(config['simulation']['scenes'])})"
+        )
     sc, spec = resolved_scene(config, scene)
     n = int(counts["images_per_shard"])
     if not 0 <= int(shard) < int(counts["n_shards"]):
-        raise ValueError(f"shard = {shard} must be in [0, {counts['n_shards']}) (simulation.scenes.{scene}.n_shards)")
+        raise ValueError(
+            f"shard = {shard} must be in [0, {counts['n_shards']}) "
+            f"(simulation.scenes.{scene}.n_shards)"
+        )
     mults = scene_multipliers(config, sc)
     m_index = None
     if mults is not None:
         if multiplier is None:
-            raise ValueError(f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}")
-        matches = [k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)]
+            raise ValueError(
+                f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}"
+            )
+        matches = [
+            k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)
+        ]
         if not matches:
-            raise ValueError(f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}")
+            raise ValueError(
+                f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}"
+            )
         m_index, multiplier = matches[0], mults[matches[0]]
     elif multiplier is not None:
         raise ValueError(f"scene {scene!r} has no NFW/tNFW component: multiplier must be None")
 
     ss = shard_seed_sequence(config["seed"], scene, shard, m_index)
-    log.info("simulating %s shard %d%s: %d images -> %s", scene, shard,
-             "" if multiplier is None else f" (a = {multiplier:g})", n, out_path)
+    log.info(
+        "simulating %s shard %d%s: %d images -> %s",
+        scene,
+        shard,
+        "" if multiplier is None else f" (a = {multiplier:g})",
+        n,
+        out_path,
+    )
     out = simulate_images(config, scene, n, ss, multiplier=multiplier, progress=progress)
     sections = simulation_sections(config, scene)
     attrs = {
@@ -443,14 +557,27 @@ def simulate_shard(
         "source_pad_shape": list(out["pad_shape"]) if out["pad_shape"] else [],
     }
     t = time.perf_counter()
-    path = _shards.write_shard(out_path, images=out["images"], params=out["params"], psf=out["psf"],
-                               subhalos=out["subhalos"], los=out["los"], sources=out["sources"] or None,
-                               attrs=attrs, overwrite=overwrite)
+    path = _shards.write_shard(
+        out_path,
+        images=out["images"],
+        params=out["params"],
+        psf=out["psf"],
+        subhalos=out["subhalos"],
+        los=out["los"],
+        sources=out["sources"] or None,
+        attrs=attrs,
+        overwrite=overwrite,
+    )
     tm = out["timings"]
     tm["write"] = time.perf_counter() - t
-    log.info("timings (s): %s; %.3f s per image; %d subhalos, %d LoS halos; file %.1f kB",
-             {k: round(v, 3) for k, v in tm.items()}, tm["total"] / max(n, 1),
-             int(out["subhalos"]["counts"].sum()), int(out["los"]["counts"].sum()), path.stat().st_size / 1e3)
+    log.info(
+        "timings (s): %s; %.3f s per image; %d subhalos, %d LoS halos; file %.1f kB",
+        {k: round(v, 3) for k, v in tm.items()},
+        tm["total"] / max(n, 1),
+        int(out["subhalos"]["counts"].sum()),
+        int(out["los"]["counts"].sum()),
+        path.stat().st_size / 1e3,
+    )
     return path
 
 
@@ -475,10 +602,14 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
         stamps, pixs = [], []
         for i in idx:
             z_s = shard.params["z_source"][i]
-            sb, pix, _ = _place(catalog, s["ident"][i], z_s, zp, s["mag"][i] if "mag" in s else None)
+            sb, pix, _ = _place(
+                catalog, s["ident"][i], z_s, zp, s["mag"][i] if "mag" in s else None
+            )
             if not np.isclose(pix, s["pixel_scale"][i], rtol=1e-12):
-                raise _shards.ShardError(f"{shard.path}: COSMOS galaxy {s['ident'][i]} at z = {z_s} "
-                                         "does not reproduce the stored pixel scale (different catalogue?)")
+                raise _shards.ShardError(
+                    f"{shard.path}: COSMOS galaxy {s['ident'][i]} at z = {z_s} "
+                    "does not reproduce the stored pixel scale (different catalogue?)"
+                )
             stamps.append(sb)
             pixs.append(s["pixel_scale"][i])
         src = _pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
@@ -490,11 +621,21 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
         lpop = LosPopulation(profile=a["los_profile"], **shard.ragged("los", idx))
     psf = torch.as_tensor(shard.psf, dtype=settings.dtype, device=settings.device)
     inst = build_instrument(cfg)
-    return {"macro": macro, "sources": src, "subhalos": subs, "los": lpop, "psf": psf, "settings": settings,
-            "noise_seed": shard.params["noise_seed"][idx], "instrument": inst}
+    return {
+        "macro": macro,
+        "sources": src,
+        "subhalos": subs,
+        "los": lpop,
+        "psf": psf,
+        "settings": settings,
+        "noise_seed": shard.params["noise_seed"][idx],
+        "instrument": inst,
+    }
 
 
-def rerender(shard_path: str | os.PathLike[str], i: int, *, noise: bool = True, cosmos=None) -> np.ndarray:
+def rerender(
+    shard_path: str | os.PathLike[str], i: int, *, noise: bool = True, cosmos=None
+) -> np.ndarray:
     """Image ``i`` of a shard re-rendered from its stored parameters (nothing re-sampled).
 
     With ``noise=True`` the stored noise seed is used: on the same device and dtype the
@@ -504,11 +645,23 @@ def rerender(shard_path: str | os.PathLike[str], i: int, *, noise: bool = True, 
 
     with _shards.open_shard(shard_path) as shard:
         if not 0 <= int(i) < len(shard):
-            raise IndexError(f"image index {i} out of range for {shard_path} with {len(shard)} images")
+            raise IndexError(
+                f"image index {i} out of range for {shard_path} with {len(shard)} images"
+            )
         inp = stored_inputs(shard, [int(i)], cosmos=cosmos)
-    clean = render(inp["macro"], inp["psf"], inp["settings"], sources=inp["sources"],
-                   subhalos=inp["subhalos"], los=inp["los"])[0]
-    img = add_noise(clean, int(inp["noise_seed"][0]), instrument=inp["instrument"]) if noise else clean
+    clean = render(
+        inp["macro"],
+        inp["psf"],
+        inp["settings"],
+        sources=inp["sources"],
+        subhalos=inp["subhalos"],
+        los=inp["los"],
+    )[0]
+    img = (
+        add_noise(clean, int(inp["noise_seed"][0]), instrument=inp["instrument"])
+        if noise
+        else clean
+    )
     return img.detach().cpu().numpy().astype(np.float32)
 
 

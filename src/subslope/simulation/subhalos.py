@@ -32,8 +32,8 @@ from scipy import stats
 
 from subslope.physics import concentration as _conc
 from subslope.physics import cosmology as _cosmo
-from subslope.simulation.priors import Prior
 from subslope.physics.instrument import NPIX, PIXEL_SCALE
+from subslope.simulation.priors import Prior
 
 __all__ = [
     "SubhaloPopulation",
@@ -56,7 +56,10 @@ R_SUB_FLOOR = 1e-3
 
 def _counts(counts) -> np.ndarray:
     c = np.asarray(counts)
-    if c.ndim != 1 or (c.size and (not np.issubdtype(c.dtype, np.number) or np.any(c < 0) or np.any(c != np.floor(c)))):
+    if c.ndim != 1 or (
+        c.size
+        and (not np.issubdtype(c.dtype, np.number) or np.any(c < 0) or np.any(c != np.floor(c)))
+    ):
         raise ValueError(f"counts must be a 1-D array of non-negative integers, got {counts!r}")
     return c.astype(np.int64)
 
@@ -107,13 +110,21 @@ class SubhaloPopulation:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """All array fields that are set (``counts`` included), keyed by field name."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "profile" and getattr(self, f.name) is not None}
+        return {
+            f.name: getattr(self, f.name)
+            for f in fields(self)
+            if f.name != "profile" and getattr(self, f.name) is not None
+        }
 
 
 # ---------------------------------------------------------------------------- draws
-def sample_masses(n: int, rng: np.random.Generator, slope: float = -1.9, m_min: float = 1e7, m_max: float = 1e10) -> np.ndarray:
+def sample_masses(
+    n: int, rng: np.random.Generator, slope: float = -1.9, m_min: float = 1e7, m_max: float = 1e10
+) -> np.ndarray:
     """``n`` masses (M☉) from ``dN/dM ∝ M^slope`` on ``[m_min, m_max]`` (inverse CDF)."""
-    prior = Prior.from_config({"dist": "power_law", "slope": slope, "low": m_min, "high": m_max}, "subhalos.mass")
+    prior = Prior.from_config(
+        {"dist": "power_law", "slope": slope, "low": m_min, "high": m_max}, "subhalos.mass"
+    )
     return prior.sample(rng, int(n))
 
 
@@ -191,7 +202,10 @@ def place_on_arc(
     imgs = np.asarray(smooth_images, dtype=np.float64)
     c = _counts(counts)
     if imgs.ndim != 3 or imgs.shape[0] != c.size:
-        raise ValueError(f"smooth_images must have shape (B, H, W) with B = len(counts) = {c.size}, got {imgs.shape}")
+        raise ValueError(
+            f"smooth_images must have shape (B, H, W) with B = len(counts) = {c.size}, got "
+            f"{imgs.shape}"
+        )
     if not pixel_scale > 0:
         raise ValueError(f"pixel_scale = {pixel_scale!r} must be > 0 arcsec")
     _, h, w = imgs.shape
@@ -213,7 +227,9 @@ def place_on_arc(
     return x + off[0], y + off[1]
 
 
-def place_everywhere(counts, rng: np.random.Generator, npix: int = NPIX, pixel_scale: float = PIXEL_SCALE) -> tuple[np.ndarray, np.ndarray]:
+def place_everywhere(
+    counts, rng: np.random.Generator, npix: int = NPIX, pixel_scale: float = PIXEL_SCALE
+) -> tuple[np.ndarray, np.ndarray]:
     """Positions (arcsec) uniform over the ``npix × npix`` field of the image."""
     c = _counts(counts)
     if isinstance(npix, bool) or not isinstance(npix, (int, np.integer)) or npix < 1:
@@ -276,12 +292,18 @@ def nfw_parameters(
     mult = np.broadcast_to(np.asarray(multiplier, dtype=np.float64), c.shape)
     if np.any(~np.isfinite(mult) | (mult <= 0)):
         raise ValueError(f"multiplier = {multiplier!r} must be finite and > 0")
-    c200 = mult[sys] * _conc.sample_c200(mass, zl[sys], rng, multiplier=1.0, scatter_dex=scatter_dex) if mass.size else mass.copy()
+    c200 = (
+        mult[sys] * _conc.sample_c200(mass, zl[sys], rng, multiplier=1.0, scatter_dex=scatter_dex)
+        if mass.size
+        else mass.copy()
+    )
     r_s, alpha = np.empty_like(mass), np.empty_like(mass)
     r_t = None if r_sub is None else np.empty_like(mass)
     for b in np.flatnonzero(c):
         s = slice(off[b], off[b + 1])
-        r_s[s], alpha[s] = _cosmo.nfw_params_from_m200_c(mass[s], c200[s], float(zl[b]), float(zs[b]), cosmo)
+        r_s[s], alpha[s] = _cosmo.nfw_params_from_m200_c(
+            mass[s], c200[s], float(zl[b]), float(zs[b]), cosmo
+        )
         if r_t is not None:
             r = np.maximum(np.asarray(r_sub, dtype=np.float64)[s], R_SUB_FLOOR)
             r_t[s] = _conc.truncation_radius_arcsec(mass[s], r, float(zl[b]), cosmo)
@@ -328,13 +350,17 @@ def sample_subhalos(
     if spec.profile == "epl":
         if "gamma_sub" not in macro:
             raise ValueError("macro has no 'gamma_sub' (label γ) but the scene's subhalos are EPL")
-        pop["gamma"] = sample_subhalo_gammas(macro["gamma_sub"], counts, rng, spec.gamma_scatter, spec.gamma_bounds)
+        pop["gamma"] = sample_subhalo_gammas(
+            macro["gamma_sub"], counts, rng, spec.gamma_scatter, spec.gamma_bounds
+        )
         pop["e1"] = spec.e1.sample(rng, n)
         pop["e2"] = spec.e2.sample(rng, n)
     if spec.placement == "arc":
         if smooth_images is None:
             if n:
-                raise ValueError(f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)")
+                raise ValueError(
+                    f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)"
+                )
             x = y = np.zeros(0)
         else:
             x, y = place_on_arc(smooth_images, counts, rng, pixel_scale, spec.threshold_fraction)
@@ -342,7 +368,9 @@ def sample_subhalos(
         x, y = place_everywhere(counts, rng, npix, pixel_scale)
     pop["x"], pop["y"] = x, y
     if spec.profile == "epl":
-        pop["amp"] = epl_amplitudes(mass, pop["gamma"], counts, macro["z_lens"], macro["z_source"], cosmo)
+        pop["amp"] = epl_amplitudes(
+            mass, pop["gamma"], counts, macro["z_lens"], macro["z_source"], cosmo
+        )
     else:
         sys = system_index(counts)
         r_sub = None
@@ -350,8 +378,16 @@ def sample_subhalos(
             r_sub = np.hypot(x - macro["lens_x"][sys], y - macro["lens_y"][sys])
         mult = macro.get("c_multiplier", np.ones(n_img))
         pop.update(
-            nfw_parameters(mass, counts, macro["z_lens"], macro["z_source"], rng, mult,
-                           scene.concentration.scatter_dex, r_sub, cosmo)
+            nfw_parameters(
+                mass,
+                counts,
+                macro["z_lens"],
+                macro["z_source"],
+                rng,
+                mult,
+                scene.concentration.scatter_dex,
+                r_sub,
+                cosmo,
+            )
         )
     return SubhaloPopulation(**pop)
-

@@ -17,12 +17,18 @@ import numpy as np
 from subslope.figures.save import save_figure
 from subslope.io.atomic import atomic_write, write_json, write_text
 from subslope.io.ratio_profiles import read_profiles
-from subslope.stats import calibration
-from subslope.stats import intervals
 from subslope.stages.plan import derived_seed
+from subslope.stats import calibration, intervals
 
-__all__ = ["safe_threshold", "calibrate_stack_size", "summarize_coverage", "load_thresholds", "threshold_for",
-           "set_stacks", "COVERAGE_COLUMNS"]
+__all__ = [
+    "safe_threshold",
+    "calibrate_stack_size",
+    "summarize_coverage",
+    "load_thresholds",
+    "threshold_for",
+    "set_stacks",
+    "COVERAGE_COLUMNS",
+]
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +48,16 @@ def safe_threshold(t, level: float) -> tuple[float, bool]:
         return float(calibration.threshold(t, level)), True
 
 
-def calibrate_stack_size(profile_paths, n: int, out_npz, *, level: float = 0.68, seed: int = 0,
-                         heldout_fraction: float = 0.5, levels=None) -> dict[str, Any]:
+def calibrate_stack_size(
+    profile_paths,
+    n: int,
+    out_npz,
+    *,
+    level: float = 0.68,
+    seed: int = 0,
+    heldout_fraction: float = 0.5,
+    levels=None,
+) -> dict[str, Any]:
     """Threshold τ_N and held-out coverage for stacks of ``n`` images; writes ``out_npz``.
 
     Stacks: :func:`subslope.stats.calibration.make_stacks` (disjoint N-subsets of every set of
@@ -61,7 +75,9 @@ def calibrate_stack_size(profile_paths, n: int, out_npz, *, level: float = 0.68,
     data = read_profiles(profile_paths)
     ok = np.isfinite(data["gamma_true"])
     if not ok.all():
-        raise ValueError(f"calibration needs labelled images; {int((~ok).sum())} have no gamma_true")
+        raise ValueError(
+            f"calibration needs labelled images; {int((~ok).sum())} have no gamma_true"
+        )
     rng = np.random.default_rng(derived_seed(seed, f"stacks/N{int(n)}"))
     stacks = calibration.make_stacks(data["gamma_true"], data["set_id"], int(n), rng)
     t_true = calibration.stack_t_true(data["log_ratio"], data["gammas"], stacks)
@@ -69,13 +85,21 @@ def calibrate_stack_size(profile_paths, n: int, out_npz, *, level: float = 0.68,
     tau, exact = safe_threshold(t_true, level)
     tau_w = calibration.wilks_threshold(level)
     try:
-        is_cal = calibration.split(stacks.set_id, seed=derived_seed(seed, "split"), fraction=1.0 - heldout_fraction)
+        is_cal = calibration.split(
+            stacks.set_id, seed=derived_seed(seed, "split"), fraction=1.0 - heldout_fraction
+        )
     except ValueError:  # a single set: nothing to hold out
         is_cal = np.ones(len(stacks), dtype=bool)
     t_cal, t_held = t_true[is_cal], t_true[~is_cal]
     tau_cal, _ = safe_threshold(t_cal, level)
-    cov = dict(coverage=np.nan, coverage_err=np.nan, wilson_lo=np.nan, wilson_hi=np.nan,
-               coverage_wilks=np.nan, coverage_wilks_err=np.nan)
+    cov = dict(
+        coverage=np.nan,
+        coverage_err=np.nan,
+        wilson_lo=np.nan,
+        wilson_hi=np.nan,
+        coverage_wilks=np.nan,
+        coverage_wilks_err=np.nan,
+    )
     curve = np.full(lv.size, np.nan)
     curve_w = np.full(lv.size, np.nan)
     if t_held.size:
@@ -85,25 +109,70 @@ def calibrate_stack_size(profile_paths, n: int, out_npz, *, level: float = 0.68,
             pw, errw, _ = calibration.coverage(t_held, tau_w)
             _, curve_w = calibration.wilks_coverage(t_held, lv)
             curve = np.array([np.mean(t_held <= safe_threshold(t_cal, a)[0]) for a in lv])
-        cov = dict(coverage=p, coverage_err=err, wilson_lo=wlo, wilson_hi=whi, coverage_wilks=pw, coverage_wilks_err=errw)
-    out = dict(n=int(n), level=float(level), tau=tau, tau_exact=bool(exact), tau_calibration=tau_cal, tau_wilks=tau_w,
-               t_true=t_true, gamma=stacks.gamma, set_id=stacks.set_id, is_calibration=is_cal, indices=stacks.indices,
-               levels=lv, coverage_curve=curve, coverage_curve_wilks=curve_w,
-               n_calibration=int(is_cal.sum()), n_heldout=int((~is_cal).sum()), **cov)
+        cov = dict(
+            coverage=p,
+            coverage_err=err,
+            wilson_lo=wlo,
+            wilson_hi=whi,
+            coverage_wilks=pw,
+            coverage_wilks_err=errw,
+        )
+    out = dict(
+        n=int(n),
+        level=float(level),
+        tau=tau,
+        tau_exact=bool(exact),
+        tau_calibration=tau_cal,
+        tau_wilks=tau_w,
+        t_true=t_true,
+        gamma=stacks.gamma,
+        set_id=stacks.set_id,
+        is_calibration=is_cal,
+        indices=stacks.indices,
+        levels=lv,
+        coverage_curve=curve,
+        coverage_curve_wilks=curve_w,
+        n_calibration=int(is_cal.sum()),
+        n_heldout=int((~is_cal).sum()),
+        **cov,
+    )
     out_npz = Path(out_npz)
     with atomic_write(out_npz) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **out)
-    log.info("N=%d: %d stacks, tau=%.4g (exact %s), held-out coverage %.3f (Wilks %.3f)", n, len(stacks), tau,
-             exact, cov["coverage"], cov["coverage_wilks"])
+    log.info(
+        "N=%d: %d stacks, tau=%.4g (exact %s), held-out coverage %.3f (Wilks %.3f)",
+        n,
+        len(stacks),
+        tau,
+        exact,
+        cov["coverage"],
+        cov["coverage_wilks"],
+    )
     return out
 
 
-COVERAGE_COLUMNS = ("n_images", "n_stacks", "tau", "tau_exact", "tau_wilks", "tau_calibration", "n_calibration",
-                  "n_heldout", "coverage", "coverage_err", "wilson_lo", "wilson_hi", "coverage_wilks",
-                  "coverage_wilks_err", "level")
+COVERAGE_COLUMNS = (
+    "n_images",
+    "n_stacks",
+    "tau",
+    "tau_exact",
+    "tau_wilks",
+    "tau_calibration",
+    "n_calibration",
+    "n_heldout",
+    "coverage",
+    "coverage_err",
+    "wilson_lo",
+    "wilson_hi",
+    "coverage_wilks",
+    "coverage_wilks_err",
+    "level",
+)
 
 
-def summarize_coverage(npz_paths, out_csv, out_json, fig_stem, *, run_name: str, source: str | None = None):
+def summarize_coverage(
+    npz_paths, out_csv, out_json, fig_stem, *, run_name: str, source: str | None = None
+):
     """Table of every N (``calibration.csv``), the thresholds (``thresholds.json``:
     ``{"level", "tau": {N: τ_N}, "exact": {N: bool}, "wilks"}``) and the coverage figure."""
     import pandas as pd
@@ -115,25 +184,47 @@ def summarize_coverage(npz_paths, out_csv, out_json, fig_stem, *, run_name: str,
     for p in npz_paths:
         with np.load(p) as z:
             n = int(z["n"])
-            rows.append({"n_images": n, "n_stacks": int(z["t_true"].size), "tau": float(z["tau"]),
-                         "tau_exact": bool(z["tau_exact"]), "tau_wilks": float(z["tau_wilks"]),
-                         "tau_calibration": float(z["tau_calibration"]), "n_calibration": int(z["n_calibration"]),
-                         "n_heldout": int(z["n_heldout"]), "coverage": float(z["coverage"]),
-                         "coverage_err": float(z["coverage_err"]), "wilson_lo": float(z["wilson_lo"]),
-                         "wilson_hi": float(z["wilson_hi"]), "coverage_wilks": float(z["coverage_wilks"]),
-                         "coverage_wilks_err": float(z["coverage_wilks_err"]), "level": float(z["level"])})
+            rows.append(
+                {
+                    "n_images": n,
+                    "n_stacks": int(z["t_true"].size),
+                    "tau": float(z["tau"]),
+                    "tau_exact": bool(z["tau_exact"]),
+                    "tau_wilks": float(z["tau_wilks"]),
+                    "tau_calibration": float(z["tau_calibration"]),
+                    "n_calibration": int(z["n_calibration"]),
+                    "n_heldout": int(z["n_heldout"]),
+                    "coverage": float(z["coverage"]),
+                    "coverage_err": float(z["coverage_err"]),
+                    "wilson_lo": float(z["wilson_lo"]),
+                    "wilson_hi": float(z["wilson_hi"]),
+                    "coverage_wilks": float(z["coverage_wilks"]),
+                    "coverage_wilks_err": float(z["coverage_wilks_err"]),
+                    "level": float(z["level"]),
+                }
+            )
             levels = z["levels"]
             curves[n], curves_w[n] = z["coverage_curve"], z["coverage_curve_wilks"]
-    table = pd.DataFrame(rows, columns=COVERAGE_COLUMNS).sort_values("n_images").reset_index(drop=True)
+    table = (
+        pd.DataFrame(rows, columns=COVERAGE_COLUMNS).sort_values("n_images").reset_index(drop=True)
+    )
     write_text(out_csv, table.to_csv(index=False))
-    thr = {"level": float(table["level"].iloc[0]), "wilks": float(table["tau_wilks"].iloc[0]),
-           "tau": {str(int(r.n_images)): float(r.tau) for r in table.itertuples()},
-           "exact": {str(int(r.n_images)): bool(r.tau_exact) for r in table.itertuples()}}
+    thr = {
+        "level": float(table["level"].iloc[0]),
+        "wilks": float(table["tau_wilks"].iloc[0]),
+        "tau": {str(int(r.n_images)): float(r.tau) for r in table.itertuples()},
+        "exact": {str(int(r.n_images)): bool(r.tau_exact) for r in table.itertuples()},
+    }
     write_json(out_json, thr)
     plot_table = table.fillna({"coverage": np.nan})
-    fig = coverage_figure(plot_table, levels, {k: np.nan_to_num(v, nan=0.0) for k, v in sorted(curves.items())},
-                          {k: np.nan_to_num(v, nan=0.0) for k, v in sorted(curves_w.items())},
-                          run_name=run_name, source=source)
+    fig = coverage_figure(
+        plot_table,
+        levels,
+        {k: np.nan_to_num(v, nan=0.0) for k, v in sorted(curves.items())},
+        {k: np.nan_to_num(v, nan=0.0) for k, v in sorted(curves_w.items())},
+        run_name=run_name,
+        source=source,
+    )
     save_figure(fig, fig_stem, run_name=run_name)
     return table, thr
 
@@ -155,7 +246,9 @@ def threshold_for(thresholds: Mapping[str, Any], n: int) -> tuple[float, int]:
         return taus[n], n
     below = [k for k in taus if k <= n] or list(taus)
     k = max(below) if any(k <= n for k in taus) else min(taus)
-    log.warning("no threshold calibrated for N=%d; using tau_%d (the interval is not calibrated)", n, k)
+    log.warning(
+        "no threshold calibrated for N=%d; using tau_%d (the interval is not calibrated)", n, k
+    )
     return taus[k], k
 
 
@@ -165,6 +258,10 @@ def set_stacks(data: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     ids, inv = np.unique(data["set_id"], return_inverse=True)
     stacked = intervals.stack(data["log_ratio"], inv)
     first = np.array([np.flatnonzero(inv == k)[0] for k in range(ids.size)], dtype=np.int64)
-    return {"profiles": stacked, "mle": np.atleast_1d(intervals.mle(stacked, data["gammas"])),
-            "gamma_true": data["gamma_true"][first], "c_multiplier": data["c_multiplier"][first],
-            "n_images": np.bincount(inv, minlength=ids.size)}
+    return {
+        "profiles": stacked,
+        "mle": np.atleast_1d(intervals.mle(stacked, data["gammas"])),
+        "gamma_true": data["gamma_true"][first],
+        "c_multiplier": data["c_multiplier"][first],
+        "n_images": np.bincount(inv, minlength=ids.size),
+    }

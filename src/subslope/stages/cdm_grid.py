@@ -16,9 +16,18 @@ from subslope.stages.calibrate import set_stacks
 __all__ = ["measure_cdm_grid", "cdm_band"]
 
 
-def measure_cdm_grid(files: Mapping[tuple[str, float], Sequence], out_npz, out_csv, fig_stem, *, run_name: str,
-                     nfw_scene: str = "nfw", tnfw_scene: str | None = "tnfw", band=(16, 84),
-                     source: str | None = None):
+def measure_cdm_grid(
+    files: Mapping[tuple[str, float], Sequence],
+    out_npz,
+    out_csv,
+    fig_stem,
+    *,
+    run_name: str,
+    nfw_scene: str = "nfw",
+    tnfw_scene: str | None = "tnfw",
+    band=(16, 84),
+    source: str | None = None,
+):
     """Stack MLEs (one per simulated set) for every (scene, multiplier) of ``files``.
 
     ``files[(scene, a)]``: the profiles files of that scene at multiplier ``a``. Writes the
@@ -43,23 +52,39 @@ def measure_cdm_grid(files: Mapping[tuple[str, float], Sequence], out_npz, out_c
             st = set_stacks(read_profiles(paths))
             per_a.append(st["mle"])
             lo, med, hi = np.percentile(st["mle"], [band[0], 50, band[1]])
-            rows.append({"scene": scene, "multiplier": a, "n_sets": int(st["mle"].size),
-                         "n_images": int(np.median(st["n_images"])), "median": med, "lo": lo, "hi": hi})
+            rows.append(
+                {
+                    "scene": scene,
+                    "multiplier": a,
+                    "n_sets": int(st["mle"].size),
+                    "n_images": int(np.median(st["n_images"])),
+                    "median": med,
+                    "lo": lo,
+                    "hi": hi,
+                }
+            )
         width = max(1, max(m.size for m in per_a))
         mat = np.full((len(mults), width), np.nan)
         for i, m in enumerate(per_a):
-            mat[i, :m.size] = m
+            mat[i, : m.size] = m
         arrays[f"mles_{scene}"] = mat
-    table = pd.DataFrame(rows, columns=["scene", "multiplier", "n_sets", "n_images", "median", "lo", "hi"])
+    table = pd.DataFrame(
+        rows, columns=["scene", "multiplier", "n_sets", "n_images", "median", "lo", "hi"]
+    )
     out_npz = Path(out_npz)
     with atomic_write(out_npz) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
     write_text(out_csv, table.to_csv(index=False))
     n_img = int(table["n_images"].median()) if len(table) else 13
-    fig = concentration_grid(mults, arrays[f"mles_{nfw_scene}"],
-                             arrays.get(f"mles_{tnfw_scene}") if tnfw_scene else None,
-                             run_name=run_name, source=source, n_images=n_img,
-                             percentiles=(band[0], 50, band[1]))
+    fig = concentration_grid(
+        mults,
+        arrays[f"mles_{nfw_scene}"],
+        arrays.get(f"mles_{tnfw_scene}") if tnfw_scene else None,
+        run_name=run_name,
+        source=source,
+        n_images=n_img,
+        percentiles=(band[0], 50, band[1]),
+    )
     save_figure(fig, fig_stem, run_name=run_name)
     return table
 

@@ -15,9 +15,18 @@ from subslope.physics.instrument import PIXEL_SCALE
 __all__ = ["evaluate_shard"]
 
 
-def evaluate_shard(model_path, shard_path, out_path, *, gammas, batch_size: int = 64, device: str = "auto",
-                   run_name: str = "") -> Path:
-    """ln r̂ of every image of a shard on the grid ``gammas``, written with :func:`write_profiles`."""
+def evaluate_shard(
+    model_path,
+    shard_path,
+    out_path,
+    *,
+    gammas,
+    batch_size: int = 64,
+    device: str = "auto",
+    run_name: str = "",
+) -> Path:
+    """ln r̂ of every image of a shard on the grid ``gammas``, written with
+    :func:`write_profiles`."""
     from subslope.nre.train import load_estimator
 
     model, meta = load_estimator(model_path)
@@ -28,12 +37,34 @@ def evaluate_shard(model_path, shard_path, out_path, *, gammas, batch_size: int 
             params[k] = fh[f"params/{k}"][...] if f"params/{k}" in fh else None
         scene = fh.attrs.get("scene", "")
         profiles = log_ratio_profiles(
-            model, fh["images"], params["theta_e"], params["lens_x"], params["lens_y"], meta["whitening"], gammas,
-            batch_size=batch_size, device=None if device in (None, "auto") else device,
-            pixel_scale=prep.get("pixel_scale", PIXEL_SCALE), mask_factor=prep.get("mask_factor", 1.5),
+            model,
+            fh["images"],
+            params["theta_e"],
+            params["lens_x"],
+            params["lens_y"],
+            meta["whitening"],
+            gammas,
+            batch_size=batch_size,
+            device=None if device in (None, "auto") else device,
+            pixel_scale=prep.get("pixel_scale", PIXEL_SCALE),
+            mask_factor=prep.get("mask_factor", 1.5),
         )
-    attrs = {"scene": str(scene), "shard": os.fspath(shard_path), "model": os.fspath(model_path),
-             "model_config_hash": str(meta.get("config_hash", "")), "run_name": run_name}
-    return write_profiles(out_path, log_ratio=profiles, gammas=gammas, gamma_true=params["gamma_sub"],
-                          set_index=params["set_index"], c_multiplier=params["c_multiplier"],
-                          theta_e=params["theta_e"], lens_x=params["lens_x"], lens_y=params["lens_y"], attrs=attrs)
+    attrs = {
+        "scene": str(scene),
+        "shard": os.fspath(shard_path),
+        "model": os.fspath(model_path),
+        "model_config_hash": str(meta.get("config_hash", "")),
+        "run_name": run_name,
+    }
+    return write_profiles(
+        out_path,
+        log_ratio=profiles,
+        gammas=gammas,
+        gamma_true=params["gamma_sub"],
+        set_index=params["set_index"],
+        c_multiplier=params["c_multiplier"],
+        theta_e=params["theta_e"],
+        lens_x=params["lens_x"],
+        lens_y=params["lens_y"],
+        attrs=attrs,
+    )

@@ -10,14 +10,22 @@ import numpy as np
 from subslope.figures.save import save_figure
 from subslope.figures.training import plot_training_curves
 from subslope.io.ratio_profiles import read_profiles
-from subslope.stats import intervals
 from subslope.stages.calibrate import load_thresholds, set_stacks, threshold_for
+from subslope.stats import intervals
 
 __all__ = ["plot_training_curves", "plot_validation", "spearman_trend"]
 
 
-def plot_validation(single_paths, stack_paths, thresholds_json, fig2_stem, fig3_stem, *, run_name: str,
-                    source: str | None = None) -> dict[str, Any]:
+def plot_validation(
+    single_paths,
+    stack_paths,
+    thresholds_json,
+    fig2_stem,
+    fig3_stem,
+    *,
+    run_name: str,
+    source: str | None = None,
+) -> dict[str, Any]:
     """Figure 2 (single images, τ_1) and figure 3 (whole sets of the stack scene, τ_N with
     N = images per set). Returns the Spearman trend of the stack MLEs (:func:`spearman_trend`)."""
     from subslope.figures.paper import stack_scatter, validation_scatter
@@ -27,19 +35,36 @@ def plot_validation(single_paths, stack_paths, thresholds_json, fig2_stem, fig3_
     g = single["gammas"]
     tau1, _ = threshold_for(thr, 1)
     ivs = intervals.intervals(single["log_ratio"], g, tau1)
-    fig2 = validation_scatter(single["gamma_true"], [i.mle for i in ivs], [i.lower for i in ivs],
-                              [i.upper for i in ivs], run_name=run_name, source=source, threshold=tau1,
-                              open_lower=[i.lower_at_edge for i in ivs], open_upper=[i.upper_at_edge for i in ivs],
-                              prior=(float(g[0]), float(g[-1])))
+    fig2 = validation_scatter(
+        single["gamma_true"],
+        [i.mle for i in ivs],
+        [i.lower for i in ivs],
+        [i.upper for i in ivs],
+        run_name=run_name,
+        source=source,
+        threshold=tau1,
+        open_lower=[i.lower_at_edge for i in ivs],
+        open_upper=[i.upper_at_edge for i in ivs],
+        prior=(float(g[0]), float(g[-1])),
+    )
     save_figure(fig2, fig2_stem, run_name=run_name)
     st = set_stacks(read_profiles(stack_paths))
     n = int(np.median(st["n_images"]))
     tau_n, _ = threshold_for(thr, n)
     ivs = intervals.intervals(st["profiles"], g, tau_n)
-    fig3 = stack_scatter(st["gamma_true"], [i.mle for i in ivs], [i.lower for i in ivs], [i.upper for i in ivs],
-                         run_name=run_name, n_images=n, source=source, threshold=tau_n,
-                         open_lower=[i.lower_at_edge for i in ivs], open_upper=[i.upper_at_edge for i in ivs],
-                         prior=(float(g[0]), float(g[-1])))
+    fig3 = stack_scatter(
+        st["gamma_true"],
+        [i.mle for i in ivs],
+        [i.lower for i in ivs],
+        [i.upper for i in ivs],
+        run_name=run_name,
+        n_images=n,
+        source=source,
+        threshold=tau_n,
+        open_lower=[i.lower_at_edge for i in ivs],
+        open_upper=[i.upper_at_edge for i in ivs],
+        prior=(float(g[0]), float(g[-1])),
+    )
     save_figure(fig3, fig3_stem, run_name=run_name)
     return spearman_trend(st["gamma_true"], st["mle"])
 

@@ -14,8 +14,13 @@ __all__ = ["plot_gallery"]
 log = logging.getLogger(__name__)
 
 
-def plot_gallery(folder: str | os.PathLike[str], outputs: Sequence[str | os.PathLike[str]], *, run_name: str,
-                 pixel_scale: float) -> None:
+def plot_gallery(
+    folder: str | os.PathLike[str],
+    outputs: Sequence[str | os.PathLike[str]],
+    *,
+    run_name: str,
+    pixel_scale: float,
+) -> None:
     """Load the HST cutouts of ``folder`` and draw them side by side into ``outputs``."""
     observations = load_hst(folder)
     log.info("loaded %d cutouts: %s", len(observations), [o.name for o in observations])

@@ -14,8 +14,15 @@ import numpy as np
 from subslope import config as _config
 from subslope.simulation.scenes import resolved_scene, scene_multipliers
 
-__all__ = ["SHARD_DIR", "RUN_ONLY_RENDER_KEYS", "derived_seed", "multiplier_label", "shard_job_config", "shard_jobs",
-           "shard_path"]
+__all__ = [
+    "SHARD_DIR",
+    "RUN_ONLY_RENDER_KEYS",
+    "derived_seed",
+    "multiplier_label",
+    "shard_job_config",
+    "shard_jobs",
+    "shard_path",
+]
 
 #: Folder of the simulated shards (rule simulate_shard).
 SHARD_DIR = "results/simulate_shard"
@@ -25,11 +32,15 @@ def multiplier_label(a: float) -> str:
     """Path label of a concentration multiplier (``1.0`` → ``'1'``, ``0.5`` → ``'0.5'``)."""
     return f"{float(a):g}"
 
-def shard_path(scene: str, shard: int, multiplier: float | None = None, root: str = SHARD_DIR) -> str:
+
+def shard_path(
+    scene: str, shard: int, multiplier: float | None = None, root: str = SHARD_DIR
+) -> str:
     """``<root>/<scene>/shard_<k>.h5`` or ``<root>/<scene>/a<a>/shard_<k>.h5``."""
     if multiplier is None:
         return f"{root}/{scene}/shard_{int(shard)}.h5"
     return f"{root}/{scene}/a{multiplier_label(multiplier)}/shard_{int(shard)}.h5"
+
 
 def shard_jobs(config: Mapping[str, Any]) -> list[dict[str, Any]]:
     """One entry ``{scene, shard, multiplier, path}`` per shard the config asks for."""
@@ -40,13 +51,18 @@ def shard_jobs(config: Mapping[str, Any]) -> list[dict[str, Any]]:
         n_img = int(counts["images_per_shard"])
         if n_img % scene.images_per_set:
             raise _config.ConfigError(
-                f"config key simulation.scenes.{name}.images_per_shard = {n_img} must be a multiple "
-                f"of scenes.{name}.images_per_set = {scene.images_per_set}")
+                f"config key simulation.scenes.{name}.images_per_shard = {n_img} must be a "
+                "multiple "
+                f"of scenes.{name}.images_per_set = {scene.images_per_set}"
+            )
         mults = scene_multipliers(config, scene)
         for k in range(int(counts["n_shards"])):
             for a in mults or (None,):
-                jobs.append({"scene": name, "shard": k, "multiplier": a, "path": shard_path(name, k, a)})
+                jobs.append(
+                    {"scene": name, "shard": k, "multiplier": a, "path": shard_path(name, k, a)}
+                )
     return jobs
+
 
 def derived_seed(seed: int, name: str) -> int:
     """A 32-bit seed for the stream ``name``, derived from the global ``seed``."""
@@ -59,7 +75,9 @@ def derived_seed(seed: int, name: str) -> int:
 RUN_ONLY_RENDER_KEYS = ("batch_size", "device")
 
 
-def shard_job_config(config: Mapping[str, Any], scene: str, multiplier: float | str | None = None) -> dict[str, Any]:
+def shard_job_config(
+    config: Mapping[str, Any], scene: str, multiplier: float | str | None = None
+) -> dict[str, Any]:
     """The resolved configuration one shard job of ``scene`` needs, and nothing else.
 
     The validated sections that determine its images: ``seed``, ``instrument``,

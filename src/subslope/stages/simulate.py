@@ -15,11 +15,23 @@ from subslope.nre.whitening import compute_whitening
 from subslope.simulation.shard import simulate_shard
 from subslope.stages.plan import RUN_ONLY_RENDER_KEYS
 
-__all__ = ["simulate_shard", "simulate_shard_job", "compute_whitening", "plot_scene_examples_from_shard"]
+__all__ = [
+    "simulate_shard",
+    "simulate_shard_job",
+    "compute_whitening",
+    "plot_scene_examples_from_shard",
+]
 
 
-def simulate_shard_job(job: Mapping[str, Any], run: Mapping[str, Any], scene: str, shard: int,
-                       out_path: str | os.PathLike[str], *, multiplier: float | None = None) -> Path:
+def simulate_shard_job(
+    job: Mapping[str, Any],
+    run: Mapping[str, Any],
+    scene: str,
+    shard: int,
+    out_path: str | os.PathLike[str],
+    *,
+    multiplier: float | None = None,
+) -> Path:
     """One shard job of the workflow: ``job`` is its resolved configuration
     (:func:`subslope.stages.plan.shard_job_config`, the rule's params); ``run`` the
     workflow's config, from which only the values that must not rerun a finished shard

@@ -36,8 +36,15 @@ def read_benchmarks(paths_by_stage: Mapping[str, Sequence]) -> list[dict[str, An
             mr = pd.to_numeric(frame.get("max_rss", pd.Series([np.nan])), errors="coerce").iloc[-1]
             if np.isfinite(mr):
                 rss = max(rss, float(mr))
-        rows.append({"stage": stage, "jobs": n, "seconds": round(secs, 2), "longest_job_s": round(longest, 2),
-                     "peak_rss_mb": round(rss, 1)})
+        rows.append(
+            {
+                "stage": stage,
+                "jobs": n,
+                "seconds": round(secs, 2),
+                "longest_job_s": round(longest, 2),
+                "peak_rss_mb": round(rss, 1),
+            }
+        )
     return rows
 
 
@@ -50,45 +57,84 @@ def _fmt(x, digits: int = 3) -> str:
 
 def _md_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
     head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
-    body = "".join("| " + " | ".join(_fmt(r.get(c)) if isinstance(r.get(c), float) else str(r.get(c, ""))
-                                     for c in columns) + " |\n" for r in rows)
+    body = "".join(
+        "| "
+        + " | ".join(
+            _fmt(r.get(c)) if isinstance(r.get(c), float) else str(r.get(c, "")) for c in columns
+        )
+        + " |\n"
+        for r in rows
+    )
     return head + body
 
 
 #: Section headings of summary.md, in order.
-SUMMARY_SECTIONS = ("Configuration", "HST measurement", "CDM predictions (a = 1)", "Calibration and coverage",
-                    "Estimator trend", "Run time per stage")
+SUMMARY_SECTIONS = (
+    "Configuration",
+    "HST measurement",
+    "CDM predictions (a = 1)",
+    "Calibration and coverage",
+    "Estimator trend",
+    "Run time per stage",
+)
 
 
 def _hst_section(folder: Path, hst_csv) -> list[str]:
     import pandas as pd
 
     if not hst_csv:
-        write_csv(folder / "hst_result.csv", [], ["n_images", "gamma_mle", "lower", "upper", "minus", "plus",
-                                                "threshold", "threshold_n", "lower_at_edge", "upper_at_edge",
-                                                "multimodal"])
+        write_csv(
+            folder / "hst_result.csv",
+            [],
+            [
+                "n_images",
+                "gamma_mle",
+                "lower",
+                "upper",
+                "minus",
+                "plus",
+                "threshold",
+                "threshold_n",
+                "lower_at_edge",
+                "upper_at_edge",
+                "multimodal",
+            ],
+        )
         return ["Stage `hst` not run.\n"]
     hst = pd.read_csv(hst_csv)
     comb = hst[hst["system"] == "combined"].iloc[0]
-    row = {"n_images": int(comb["n_images"]), "gamma_mle": float(comb["mle"]), "lower": float(comb["lower"]),
-           "upper": float(comb["upper"]), "minus": float(comb["mle"] - comb["lower"]),
-           "plus": float(comb["upper"] - comb["mle"]), "threshold": float(comb["threshold"]),
-           "threshold_n": int(comb["threshold_n"]), "lower_at_edge": bool(comb["lower_at_edge"]),
-           "upper_at_edge": bool(comb["upper_at_edge"]), "multimodal": bool(comb["multimodal"])}
+    row = {
+        "n_images": int(comb["n_images"]),
+        "gamma_mle": float(comb["mle"]),
+        "lower": float(comb["lower"]),
+        "upper": float(comb["upper"]),
+        "minus": float(comb["mle"] - comb["lower"]),
+        "plus": float(comb["upper"] - comb["mle"]),
+        "threshold": float(comb["threshold"]),
+        "threshold_n": int(comb["threshold_n"]),
+        "lower_at_edge": bool(comb["lower_at_edge"]),
+        "upper_at_edge": bool(comb["upper_at_edge"]),
+        "multimodal": bool(comb["multimodal"]),
+    }
     write_csv(folder / "hst_result.csv", [row])
     note = []
     if row["threshold_n"] != row["n_images"]:
-        note.append(f"threshold from N = {row['threshold_n']}, NOT calibrated for N = {row['n_images']}")
+        note.append(
+            f"threshold from N = {row['threshold_n']}, NOT calibrated for N = {row['n_images']}"
+        )
     if row["lower_at_edge"] or row["upper_at_edge"]:
         note.append("open at the prior edge")
     if row["multimodal"]:
         note.append("hull of several regions")
     singles = hst[hst["system"] != "combined"].to_dict("records")
-    return [f"Combined stack of {row['n_images']} HST lenses: γ_MLE = {row['gamma_mle']:.3f} "
-            f"(−{row['minus']:.3f}, +{row['plus']:.3f}) at {_fmt(row['threshold'])} "
-            f"(68% interval [{row['lower']:.3f}, {row['upper']:.3f}])"
-            + (f"; {'; '.join(note)}" if note else "") + ".\n",
-            _md_table(singles, ["system", "mle", "lower", "upper", "lower_at_edge", "upper_at_edge"])]
+    return [
+        f"Combined stack of {row['n_images']} HST lenses: γ_MLE = {row['gamma_mle']:.3f} "
+        f"(−{row['minus']:.3f}, +{row['plus']:.3f}) at {_fmt(row['threshold'])} "
+        f"(68% interval [{row['lower']:.3f}, {row['upper']:.3f}])"
+        + (f"; {'; '.join(note)}" if note else "")
+        + ".\n",
+        _md_table(singles, ["system", "mle", "lower", "upper", "lower_at_edge", "upper_at_edge"]),
+    ]
 
 
 def _cdm_section(folder: Path, cdm_csv, scenes: Sequence[str | None]) -> list[str]:
@@ -105,11 +151,17 @@ def _cdm_section(folder: Path, cdm_csv, scenes: Sequence[str | None]) -> list[st
             continue
         b = cdm_band(cdm, scene)
         if b is not None:
-            n_sets = int(cdm[(cdm["scene"] == scene) & np.isclose(cdm["multiplier"], 1.0)]["n_sets"].iloc[0])
-            rows.append({"scene": scene, "median": b[0], "p16": b[1], "p84": b[2], "n_sets": n_sets})
+            n_sets = int(
+                cdm[(cdm["scene"] == scene) & np.isclose(cdm["multiplier"], 1.0)]["n_sets"].iloc[0]
+            )
+            rows.append(
+                {"scene": scene, "median": b[0], "p16": b[1], "p84": b[2], "n_sets": n_sets}
+            )
     write_csv(folder / "cdm_prediction.csv", rows, columns)
-    return ["Median and 16–84% range of the stack γ_MLE of simulated CDM sets at a = 1:\n",
-            _md_table(rows, columns) if rows else "no a = 1 sets\n"]
+    return [
+        "Median and 16–84% range of the stack γ_MLE of simulated CDM sets at a = 1:\n",
+        _md_table(rows, columns) if rows else "no a = 1 sets\n",
+    ]
 
 
 def _calibration_section(folder: Path, calibration_csv) -> list[str]:
@@ -120,10 +172,23 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
         return ["Stage `calibrate` not run.\n"]
     table = pd.read_csv(calibration_csv)
     write_text(folder / "coverage.csv", table.to_csv(index=False))
-    return ["Held-out coverage of the 68% intervals with the calibrated threshold τ_N "
-            "(and with Wilks' χ²₁ threshold):\n",
-            _md_table(table.to_dict("records"), ["n_images", "n_stacks", "tau", "tau_exact", "coverage",
-                                                 "coverage_err", "coverage_wilks", "n_heldout"])]
+    return [
+        "Held-out coverage of the 68% intervals with the calibrated threshold τ_N "
+        "(and with Wilks' χ²₁ threshold):\n",
+        _md_table(
+            table.to_dict("records"),
+            [
+                "n_images",
+                "n_stacks",
+                "tau",
+                "tau_exact",
+                "coverage",
+                "coverage_err",
+                "coverage_wilks",
+                "n_heldout",
+            ],
+        ),
+    ]
 
 
 def _trend_section(folder: Path, trend: Mapping[str, float] | None) -> list[str]:
@@ -131,23 +196,39 @@ def _trend_section(folder: Path, trend: Mapping[str, float] | None) -> list[str]
         write_csv(folder / "trend.csv", [], ["rho", "p_value", "n"])
         return ["Not computed (calibration or figures stage off).\n"]
     write_csv(folder / "trend.csv", [dict(trend)])
-    return [f"Spearman ρ between the true γ and the stack γ_MLE of the EPL test sets: "
-            f"ρ = {_fmt(trend.get('rho'))} (p = {float(trend.get('p_value', float('nan'))):.3g}, "
-            f"{int(trend.get('n', 0))} sets).\n"]
+    return [
+        f"Spearman ρ between the true γ and the stack γ_MLE of the EPL test sets: "
+        f"ρ = {_fmt(trend.get('rho'))} (p = {float(trend.get('p_value', float('nan'))):.3g}, "
+        f"{int(trend.get('n', 0))} sets).\n"
+    ]
 
 
 def _runtime_section(folder: Path, benchmarks: Mapping[str, Sequence] | None) -> list[str]:
     columns = ["stage", "jobs", "seconds", "longest_job_s", "peak_rss_mb"]
     rows = read_benchmarks(benchmarks or {})
     write_csv(folder / "stage_runtime.csv", rows, columns)
-    return ["Summed job wall time per stage (Snakemake benchmark files; jobs run in parallel, so the sum "
-            "exceeds the wall time of the run):\n", _md_table(rows, columns)]
+    return [
+        "Summed job wall time per stage (Snakemake benchmark files; jobs run in parallel, so the "
+        "sum "
+        "exceeds the wall time of the run):\n",
+        _md_table(rows, columns),
+    ]
 
 
-def write_summary(out_md, *, run_name: str, config_hash: str, config_file: str = "", hst_csv=None,
-                  cdm_csv=None, calibration_csv=None, trend: Mapping[str, float] | None = None,
-                  benchmarks: Mapping[str, Sequence] | None = None, nfw_scene: str = "nfw",
-                  tnfw_scene: str | None = "tnfw") -> Path:
+def write_summary(
+    out_md,
+    *,
+    run_name: str,
+    config_hash: str,
+    config_file: str = "",
+    hst_csv=None,
+    cdm_csv=None,
+    calibration_csv=None,
+    trend: Mapping[str, float] | None = None,
+    benchmarks: Mapping[str, Sequence] | None = None,
+    nfw_scene: str = "nfw",
+    tnfw_scene: str | None = "tnfw",
+) -> Path:
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
     ``coverage.csv``, ``trend.csv`` and ``stage_runtime.csv``. Any input may be None (its
     stage was off): the section then says so."""

@@ -34,8 +34,12 @@ def training_section(config: Mapping[str, Any]) -> dict[str, Any]:
     return tr
 
 
-def checkpoint_key(training: Mapping[str, Any], train_shards: Sequence, val_shards: Sequence,
-                   data_hashes: Mapping[str, str] | None = None) -> str:
+def checkpoint_key(
+    training: Mapping[str, Any],
+    train_shards: Sequence,
+    val_shards: Sequence,
+    data_hashes: Mapping[str, str] | None = None,
+) -> str:
     """12 hex digits naming the checkpoint folder of one training run.
 
     Depends on the training section (without the resume-safe keys) and on the data
@@ -51,13 +55,26 @@ def checkpoint_key(training: Mapping[str, Any], train_shards: Sequence, val_shar
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def run_training(training: Mapping[str, Any], train_shards: Sequence, val_shards: Sequence, whitening,
-                 out_dir, ckpt_dir, *, device: str = "auto") -> dict[str, Any]:
-    """Train (resuming from ``ckpt_dir`` when possible); ``out_dir`` gets model.pt + training_log.csv."""
+def run_training(
+    training: Mapping[str, Any],
+    train_shards: Sequence,
+    val_shards: Sequence,
+    whitening,
+    out_dir,
+    ckpt_dir,
+    *,
+    device: str = "auto",
+) -> dict[str, Any]:
+    """Train (resuming from ``ckpt_dir`` when possible); ``out_dir`` gets model.pt +
+    training_log.csv."""
     from subslope.nre.train import train
 
     dev = None if device in (None, "auto") else device
-    summary = train(training, list(train_shards), list(val_shards), whitening, out_dir, ckpt_dir, device=dev)
+    summary = train(
+        training, list(train_shards), list(val_shards), whitening, out_dir, ckpt_dir, device=dev
+    )
     if not summary["finished"]:
-        raise RuntimeError(f"training stopped before the end ({summary}); run again to resume from {ckpt_dir}")
+        raise RuntimeError(
+            f"training stopped before the end ({summary}); run again to resume from {ckpt_dir}"
+        )
     return summary

@@ -102,12 +102,17 @@ def threshold(t_true, level: float = 0.68) -> float:
     lv = _check_level(level)
     if a.size < MIN_SAMPLES:
         warnings.warn(
-            f"threshold: only {a.size} samples of t(γ_true) (< {MIN_SAMPLES}); the {lv:.0%} quantile is "
-            "poorly determined", FewSamplesWarning, stacklevel=2,
+            f"threshold: only {a.size} samples of t(γ_true) (< {MIN_SAMPLES}); the {lv:.0%} "
+            "quantile is "
+            "poorly determined",
+            FewSamplesWarning,
+            stacklevel=2,
         )
     tau = float(thresholds(a, [lv])[0])
     if not math.isfinite(tau):
-        raise ValueError(f"threshold: {a.size} samples are too few for level {lv} (need ⌈(n+1)·level⌉ <= n)")
+        raise ValueError(
+            f"threshold: {a.size} samples are too few for level {lv} (need ⌈(n+1)·level⌉ <= n)"
+        )
     return tau
 
 
@@ -156,7 +161,9 @@ def make_stacks(gamma_true, set_index, n: int, rng=None, n_stacks: int | None = 
     g = np.asarray(gamma_true, dtype=np.float64)
     sid = np.asarray(set_index)
     if g.ndim != 1 or sid.shape != g.shape:
-        raise ValueError(f"gamma_true and set_index must be 1-D of equal length, got {g.shape} and {sid.shape}")
+        raise ValueError(
+            f"gamma_true and set_index must be 1-D of equal length, got {g.shape} and {sid.shape}"
+        )
     if int(n) != n or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
     n = int(n)
@@ -165,15 +172,19 @@ def make_stacks(gamma_true, set_index, n: int, rng=None, n_stacks: int | None = 
     members = [np.flatnonzero(inv == k) for k in range(ids.size)]
     for k, m in enumerate(members):
         if np.ptp(g[m]) > 1e-9 * max(1.0, abs(g[m[0]])):
-            raise ValueError(f"make_stacks: set {ids[k]!r} mixes true γ values {np.unique(g[m])[:5]}")
+            raise ValueError(
+                f"make_stacks: set {ids[k]!r} mixes true γ values {np.unique(g[m])[:5]}"
+            )
     eligible = [k for k, m in enumerate(members) if m.size >= n]
     if not eligible:
-        raise ValueError(f"make_stacks: no set has >= n = {n} images (largest: {max(m.size for m in members)})")
+        raise ValueError(
+            f"make_stacks: no set has >= n = {n} images (largest: {max(m.size for m in members)})"
+        )
     rows, sets = [], []
     for k in eligible:
         perm = gen.permutation(members[k])
         for s in range(members[k].size // n):
-            rows.append(perm[s * n:(s + 1) * n])
+            rows.append(perm[s * n : (s + 1) * n])
             sets.append(k)
     rows_a = np.asarray(rows, dtype=np.int64).reshape(-1, n)
     sets_a = np.asarray(sets, dtype=np.int64)
@@ -194,7 +205,9 @@ def make_stacks(gamma_true, set_index, n: int, rng=None, n_stacks: int | None = 
 
 def stack_t_true(profiles, gammas, stacks: Stacks) -> np.ndarray:
     """``t(γ_true)`` of every stack: stack the image profiles ``(B, G)`` then :func:`t_at`."""
-    return np.asarray(t_at(_stack(profiles, stacks.indices), gammas, stacks.gamma), dtype=np.float64)
+    return np.asarray(
+        t_at(_stack(profiles, stacks.indices), gammas, stacks.gamma), dtype=np.float64
+    )
 
 
 def split(keys, *, seed: int = 0, fraction: float = 0.5) -> np.ndarray:
@@ -223,7 +236,9 @@ def split(keys, *, seed: int = 0, fraction: float = 0.5) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # coverage
 # ---------------------------------------------------------------------------------------
-def coverage(t_true, threshold: float, *, wilson_level: float = 0.68) -> tuple[float, float, tuple[float, float]]:
+def coverage(
+    t_true, threshold: float, *, wilson_level: float = 0.68
+) -> tuple[float, float, tuple[float, float]]:
     """Observed coverage of intervals ``{t ≤ threshold}``.
 
     Returns ``(fraction, binomial standard error √(p(1−p)/n), Wilson score interval at
@@ -233,7 +248,9 @@ def coverage(t_true, threshold: float, *, wilson_level: float = 0.68) -> tuple[f
     a = _check_t(t_true)
     n = a.size
     if n < MIN_SAMPLES:
-        warnings.warn(f"coverage: only {n} samples (< {MIN_SAMPLES})", FewSamplesWarning, stacklevel=2)
+        warnings.warn(
+            f"coverage: only {n} samples (< {MIN_SAMPLES})", FewSamplesWarning, stacklevel=2
+        )
     p = float(np.mean(a <= float(threshold)))
     se = math.sqrt(p * (1 - p) / n)
     z = float(stats.norm.ppf(0.5 + _check_level(wilson_level, "wilson_level") / 2))
@@ -261,8 +278,12 @@ def expected_coverage(t_calibration, t_heldout, levels=None) -> tuple[np.ndarray
     lv = _levels(levels)
     cal, held = _check_t(t_calibration, "t_calibration"), _check_t(t_heldout, "t_heldout")
     if min(cal.size, held.size) < MIN_SAMPLES:
-        warnings.warn(f"expected_coverage: {cal.size} calibration / {held.size} held-out samples (< {MIN_SAMPLES})",
-                      FewSamplesWarning, stacklevel=2)
+        warnings.warn(
+            f"expected_coverage: {cal.size} calibration / {held.size} held-out samples (< "
+            f"{MIN_SAMPLES})",
+            FewSamplesWarning,
+            stacklevel=2,
+        )
     tau = thresholds(cal, lv)
     return lv, np.mean(held[None, :] <= tau[:, None], axis=1)
 
@@ -305,7 +326,9 @@ def calibration_table(
         t = _check_t(t_by_n[n], f"t_by_n[{n}]")
         keys = np.arange(t.size) if keys_by_n is None else np.asarray(keys_by_n[n])
         if keys.shape != t.shape:
-            raise ValueError(f"keys_by_n[{n}] must have one key per stack ({t.size}), got shape {keys.shape}")
+            raise ValueError(
+                f"keys_by_n[{n}] must have one key per stack ({t.size}), got shape {keys.shape}"
+            )
         is_cal = split(keys, seed=seed, fraction=fraction)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FewSamplesWarning)
@@ -314,9 +337,26 @@ def calibration_table(
             cov, err, (wlo, whi) = coverage(t[~is_cal], tau_cal)
             cov_w, err_w, _ = coverage(t[~is_cal], tw)
         if t.size < 2 * MIN_SAMPLES:
-            warnings.warn(f"calibration_table: N={n} has only {t.size} stacks", FewSamplesWarning, stacklevel=2)
-        rows.append(dict(n_images=int(n), tau=tau_all, tau_wilks=tw, tau_calibration=tau_cal,
-                         n_calibration=int(is_cal.sum()), n_heldout=int((~is_cal).sum()),
-                         coverage=cov, coverage_err=err, wilson_lo=wlo, wilson_hi=whi,
-                         coverage_wilks=cov_w, coverage_wilks_err=err_w, level=lv))
+            warnings.warn(
+                f"calibration_table: N={n} has only {t.size} stacks",
+                FewSamplesWarning,
+                stacklevel=2,
+            )
+        rows.append(
+            dict(
+                n_images=int(n),
+                tau=tau_all,
+                tau_wilks=tw,
+                tau_calibration=tau_cal,
+                n_calibration=int(is_cal.sum()),
+                n_heldout=int((~is_cal).sum()),
+                coverage=cov,
+                coverage_err=err,
+                wilson_lo=wlo,
+                wilson_hi=whi,
+                coverage_wilks=cov_w,
+                coverage_wilks_err=err_w,
+                level=lv,
+            )
+        )
     return pd.DataFrame(rows)

@@ -70,7 +70,9 @@ def check_grid(gammas) -> np.ndarray:
 def _check_profile(profile, g: np.ndarray, name: str = "profile") -> np.ndarray:
     p = np.asarray(profile, dtype=np.float64)
     if p.ndim < 1 or p.shape[-1] != g.size:
-        raise ValueError(f"{name} must have shape (..., G) with G = len(gammas) = {g.size}, got {p.shape}")
+        raise ValueError(
+            f"{name} must have shape (..., G) with G = len(gammas) = {g.size}, got {p.shape}"
+        )
     if not np.all(np.isfinite(p)):
         raise ValueError(f"{name} holds non-finite values (NaN or ±inf); profiles must be finite")
     return p
@@ -101,7 +103,9 @@ def stack(profiles, groups=None) -> np.ndarray:
         if not np.issubdtype(grp.dtype, np.integer):
             raise ValueError(f"groups (S, N) must be integer row indices, got dtype {grp.dtype}")
         if grp.size and (grp.min() < 0 or grp.max() >= len(p)):
-            raise ValueError(f"groups: indices must lie in [0, {len(p)}), got [{grp.min()}, {grp.max()}]")
+            raise ValueError(
+                f"groups: indices must lie in [0, {len(p)}), got [{grp.min()}, {grp.max()}]"
+            )
         return p[grp].sum(axis=1)
     if grp.ndim == 1:
         if len(grp) != len(p):
@@ -146,7 +150,9 @@ def refine_max(profile, gammas) -> tuple[np.ndarray, np.ndarray]:
         dx = np.where(use, -b / (2 * np.where(use, c, -1.0)), 0.0)
     dx = np.clip(dx, d0, d2)
     g_hat = np.where(use, x1 + dx, g[k])
-    v_hat = np.where(use, y1 + b * dx + c * dx * dx, np.take_along_axis(p, k[..., None], -1)[..., 0])
+    v_hat = np.where(
+        use, y1 + b * dx + c * dx * dx, np.take_along_axis(p, k[..., None], -1)[..., 0]
+    )
     v_hat = np.maximum(v_hat, np.take_along_axis(p, k[..., None], -1)[..., 0])
     return g_hat, v_hat
 
@@ -280,7 +286,9 @@ def interval(profile, gammas, threshold: float) -> Interval:
     g = check_grid(gammas)
     p = _check_profile(profile, g)
     if p.ndim != 1:
-        raise ValueError(f"interval: one profile of shape (G,) at a time, got {p.shape}; use intervals()")
+        raise ValueError(
+            f"interval: one profile of shape (G,) at a time, got {p.shape}; use intervals()"
+        )
     tau = float(threshold)
     if not (math.isfinite(tau) and tau > 0):
         raise ValueError(f"threshold must be finite and > 0, got {threshold!r}")
@@ -324,11 +332,17 @@ def intervals_frame(profiles, gammas, threshold: float, index: Sequence | None =
     return pd.DataFrame(rows, index=None if index is None else list(index))
 
 
-def profiles_to_t(profiles: Mapping[str, np.ndarray] | np.ndarray, gammas, *, kind: str = "log_ratio"):
+def profiles_to_t(
+    profiles: Mapping[str, np.ndarray] | np.ndarray, gammas, *, kind: str = "log_ratio"
+):
     """Convert ``ln r̂`` profiles to ``t`` (``kind='log_ratio'``) or pass ``t`` through (``'t'``)."""
     if kind not in ("log_ratio", "t"):
         raise ValueError(f"kind must be 'log_ratio' or 't', got {kind!r}")
-    conv = (lambda a: test_statistic(a, gammas)) if kind == "log_ratio" else (lambda a: np.asarray(a, dtype=np.float64))
+    conv = (
+        (lambda a: test_statistic(a, gammas))
+        if kind == "log_ratio"
+        else (lambda a: np.asarray(a, dtype=np.float64))
+    )
     if isinstance(profiles, Mapping):
         return {k: conv(v) for k, v in profiles.items()}
     return conv(profiles)

@@ -23,8 +23,15 @@ from subslope.physics.instrument import NPIX, PIXEL_SCALE, ZERO_POINT
 from subslope.physics.light.sersic import magnitude_to_flux, sersic_amp_from_flux
 from subslope.ragged import counts_to_offsets
 
-__all__ = ["LensModelUnrepresentable", "LenstronomyImage", "epl_theta_e", "members", "lenstronomy_model",
-           "lenstronomy_noise"]
+__all__ = [
+    "LensModelUnrepresentable",
+    "LenstronomyImage",
+    "epl_theta_e",
+    "members",
+    "lenstronomy_model",
+    "lenstronomy_noise",
+]
+
 
 class LensModelUnrepresentable(ValueError):
     """An EPL member whose θ_E = amp^(1/(γ−1)) underflows float64 (γ → 1, small amp)."""
@@ -36,28 +43,48 @@ def epl_theta_e(amp: np.ndarray, gamma: np.ndarray) -> np.ndarray:
     if np.any(log_te < np.log(1e-300)):
         j = int(np.argmin(log_te))
         raise LensModelUnrepresentable(
-            f"{int(np.sum(log_te < np.log(1e-300)))} EPL member(s) have θ_E < 1e-300 (e.g. amp {amp[j]:.2e}, "
-            f"γ {gamma[j]:.3f}): not representable in lenstronomy's θ_E parametrisation")
+            f"{int(np.sum(log_te < np.log(1e-300)))} EPL member(s) have θ_E < 1e-300 (e.g. amp "
+            f"{amp[j]:.2e}, "
+            f"γ {gamma[j]:.3f}): not representable in lenstronomy's θ_E parametrisation"
+        )
     return np.exp(log_te)
 
 
-def members(pop, lo: int, hi: int, sel=None, *, epl: str = "EPL_NUMBA") -> tuple[list[str], list[dict]]:
-    """lenstronomy model names and kwargs of members ``lo:hi`` (optionally masked) of a population."""
+def members(
+    pop, lo: int, hi: int, sel=None, *, epl: str = "EPL_NUMBA"
+) -> tuple[list[str], list[dict]]:
+    """lenstronomy model names and kwargs of members ``lo:hi`` (optionally masked) of a
+    population."""
     idx = np.arange(lo, hi) if sel is None else np.arange(lo, hi)[sel]
     if idx.size == 0:
         return [], []
     x, y = pop.x[idx], pop.y[idx]
     if pop.profile == "epl":
         te = epl_theta_e(pop.amp[idx], pop.gamma[idx])
-        kw = [dict(theta_E=float(t), gamma=float(g), e1=float(a), e2=float(b), center_x=float(cx), center_y=float(cy))
-              for t, g, a, b, cx, cy in zip(te, pop.gamma[idx], pop.e1[idx], pop.e2[idx], x, y)]
+        kw = [
+            dict(
+                theta_E=float(t),
+                gamma=float(g),
+                e1=float(a),
+                e2=float(b),
+                center_x=float(cx),
+                center_y=float(cy),
+            )
+            for t, g, a, b, cx, cy in zip(te, pop.gamma[idx], pop.e1[idx], pop.e2[idx], x, y)
+        ]
         return [epl] * idx.size, kw
     if pop.profile == "nfw":
-        kw = [dict(Rs=float(r), alpha_Rs=float(a), center_x=float(cx), center_y=float(cy))
-              for r, a, cx, cy in zip(pop.r_s[idx], pop.alpha_rs[idx], x, y)]
+        kw = [
+            dict(Rs=float(r), alpha_Rs=float(a), center_x=float(cx), center_y=float(cy))
+            for r, a, cx, cy in zip(pop.r_s[idx], pop.alpha_rs[idx], x, y)
+        ]
         return ["NFW"] * idx.size, kw
-    kw = [dict(Rs=float(r), alpha_Rs=float(a), r_trunc=float(t), center_x=float(cx), center_y=float(cy))
-          for r, a, t, cx, cy in zip(pop.r_s[idx], pop.alpha_rs[idx], pop.r_t[idx], x, y)]
+    kw = [
+        dict(
+            Rs=float(r), alpha_Rs=float(a), r_trunc=float(t), center_x=float(cx), center_y=float(cy)
+        )
+        for r, a, t, cx, cy in zip(pop.r_s[idx], pop.alpha_rs[idx], pop.r_t[idx], x, y)
+    ]
     return ["TNFW"] * idx.size, kw
 
 
@@ -76,15 +103,31 @@ class LenstronomyImage:
 def _macro_lens(g: Mapping[str, float], epl: str) -> tuple[list[str], list[dict]]:
     """Main lens, shear about the origin and multipoles about the lens centre."""
     models = [epl]
-    kw = [dict(theta_E=g["theta_e"], gamma=g["gamma_ml"], e1=g["lens_e1"], e2=g["lens_e2"],
-               center_x=g["lens_x"], center_y=g["lens_y"])]
+    kw = [
+        dict(
+            theta_E=g["theta_e"],
+            gamma=g["gamma_ml"],
+            e1=g["lens_e1"],
+            e2=g["lens_e2"],
+            center_x=g["lens_x"],
+            center_y=g["lens_y"],
+        )
+    ]
     if "shear_g1" in g:
         models.append("SHEAR")
         kw.append(dict(gamma1=g["shear_g1"], gamma2=g["shear_g2"], ra_0=0.0, dec_0=0.0))
     if "a3" in g:
         for m in (3, 4):
             models.append("MULTIPOLE")
-            kw.append(dict(m=m, a_m=g[f"a{m}"], phi_m=g[f"phi{m}"], center_x=g["lens_x"], center_y=g["lens_y"]))
+            kw.append(
+                dict(
+                    m=m,
+                    a_m=g[f"a{m}"],
+                    phi_m=g[f"phi{m}"],
+                    center_x=g["lens_x"],
+                    center_y=g["lens_y"],
+                )
+            )
     return models, kw
 
 
@@ -118,7 +161,7 @@ def _image_planes(g: Mapping[str, float], i: int, subhalos, los, epl: str) -> _P
         p.planes.append((zl, [], None))
     if los is not None and int(los.counts[i]) > 0:
         off = counts_to_offsets(np.asarray(los.counts))
-        zh = los.z[off[i]:off[i + 1]]
+        zh = los.z[off[i] : off[i + 1]]
         for zu in np.unique(zh):
             p.add(float(zu), *members(los, off[i], off[i + 1], zh == zu, epl=epl))
     return p
@@ -137,8 +180,14 @@ def _lens_model(p: _Planes, zs: float, tx: np.ndarray, ty: np.ndarray, sheets: b
             kap = LensModel([models[j] for j in main]).kappa(tx, ty, [kw[j] for j in main])
             kw[sheet]["kappa"] = -float(np.mean(kap))
         return LensModel(models)
-    lm = LensModel(models, z_source=zs, lens_redshift_list=p.zlist, multi_plane=True, cosmo=Planck18,
-                   z_source_convention=zs)
+    lm = LensModel(
+        models,
+        z_source=zs,
+        lens_redshift_list=p.zlist,
+        multi_plane=True,
+        cosmo=Planck18,
+        z_source_convention=zs,
+    )
     mpb = lm.lens_model.multi_plane_base
     cx, cy, ax, ay, z_prev = np.zeros_like(tx), np.zeros_like(ty), tx.copy(), ty.copy(), 0.0
     for z, on_plane, sheet in sorted(p.planes, key=lambda q: q[0]):
@@ -148,28 +197,53 @@ def _lens_model(p: _Planes, zs: float, tx: np.ndarray, ty: np.ndarray, sheets: b
             px, py = (cx + ax * dt) / tz, (cy + ay * dt) / tz
             kap = LensModel([models[j] for j in on_plane]).kappa(px, py, [kw[j] for j in on_plane])
             kw[sheet]["kappa"] = -float(np.mean(kap))
-        cx, cy, ax, ay = mpb.ray_shooting_partial_comoving(cx, cy, ax, ay, z_prev, z, kw, include_z_start=False)
+        cx, cy, ax, ay = mpb.ray_shooting_partial_comoving(
+            cx, cy, ax, ay, z_prev, z, kw, include_z_start=False
+        )
         z_prev = z
     return lm
 
 
 def _sersic_kwargs(g: Mapping[str, float]) -> tuple[dict, dict | None]:
     """The source (rotated by ``src_rotation``) and, when present, the lens light."""
-    src = dict(amp=float(sersic_amp_from_flux(magnitude_to_flux(g["src_mag"]), g["src_r"], g["src_n"])),
-               R_sersic=g["src_r"], n_sersic=g["src_n"], center_x=g["src_x"], center_y=g["src_y"])
+    src = dict(
+        amp=float(sersic_amp_from_flux(magnitude_to_flux(g["src_mag"]), g["src_r"], g["src_n"])),
+        R_sersic=g["src_r"],
+        n_sersic=g["src_n"],
+        center_x=g["src_x"],
+        center_y=g["src_y"],
+    )
     c2, s2 = np.cos(2 * g["src_rotation"]), np.sin(2 * g["src_rotation"])
     src.update(e1=c2 * g["src_e1"] - s2 * g["src_e2"], e2=s2 * g["src_e1"] + c2 * g["src_e2"])
     if "light_mag" not in g:
         return src, None
-    light = dict(amp=float(sersic_amp_from_flux(magnitude_to_flux(g["light_mag"]), g["light_r"], g["light_n"])),
-                 R_sersic=g["light_r"], n_sersic=g["light_n"], e1=g["light_e1"], e2=g["light_e2"],
-                 center_x=g["lens_x"], center_y=g["lens_y"])
+    light = dict(
+        amp=float(
+            sersic_amp_from_flux(magnitude_to_flux(g["light_mag"]), g["light_r"], g["light_n"])
+        ),
+        R_sersic=g["light_r"],
+        n_sersic=g["light_n"],
+        e1=g["light_e1"],
+        e2=g["light_e2"],
+        center_x=g["lens_x"],
+        center_y=g["lens_y"],
+    )
     return src, light
 
 
-def lenstronomy_model(macro: Mapping[str, np.ndarray], psf, i: int = 0, *, subhalos=None, los=None,
-                      npix: int = NPIX, pixel_scale: float = PIXEL_SCALE, sheets: bool = True,
-                      epl: str = "EPL_NUMBA", supersampling: int = 1) -> LenstronomyImage:
+def lenstronomy_model(
+    macro: Mapping[str, np.ndarray],
+    psf,
+    i: int = 0,
+    *,
+    subhalos=None,
+    los=None,
+    npix: int = NPIX,
+    pixel_scale: float = PIXEL_SCALE,
+    sheets: bool = True,
+    epl: str = "EPL_NUMBA",
+    supersampling: int = 1,
+) -> LenstronomyImage:
     """lenstronomy 1.14.2 model of image ``i`` with exactly its parameters.
 
     ``macro``: per-image parameters (:func:`subslope.simulation.macro.sample_macro`, Sérsic
@@ -194,12 +268,21 @@ def lenstronomy_model(macro: Mapping[str, np.ndarray], psf, i: int = 0, *, subha
     if light is not None:
         kwargs["kwargs_lens_light"] = [light]
     d = pixel_scale
-    data = ImageData(image_data=np.zeros((npix, npix)), ra_at_xy_0=-(npix - 1) / 2 * d,
-                     dec_at_xy_0=-(npix - 1) / 2 * d, transform_pix2angle=np.array([[d, 0], [0, d]]))
+    data = ImageData(
+        image_data=np.zeros((npix, npix)),
+        ra_at_xy_0=-(npix - 1) / 2 * d,
+        dec_at_xy_0=-(npix - 1) / 2 * d,
+        transform_pix2angle=np.array([[d, 0], [0, d]]),
+    )
     lpsf = LPSF(psf_type="PIXEL", kernel_point_source=np.asarray(psf, dtype=np.float64))
-    im = ImageModel(data, lpsf, lens_model_class=lm, source_model_class=LightModel(["SERSIC_ELLIPSE"]),
-                    lens_light_model_class=LightModel(["SERSIC_ELLIPSE"]) if light is not None else None,
-                    kwargs_numerics={"supersampling_factor": supersampling})
+    im = ImageModel(
+        data,
+        lpsf,
+        lens_model_class=lm,
+        source_model_class=LightModel(["SERSIC_ELLIPSE"]),
+        lens_light_model_class=LightModel(["SERSIC_ELLIPSE"]) if light is not None else None,
+        kwargs_numerics={"supersampling_factor": supersampling},
+    )
     return LenstronomyImage(im, kwargs, len(planes.planes))
 
 
@@ -207,7 +290,15 @@ def lenstronomy_noise(instrument_seed: int = 0):
     """lenstronomy's SingleBand noise for the docs/physics.md instrument (for timing parity)."""
     from lenstronomy.SimulationAPI.observation_api import SingleBand
 
-    band = SingleBand(pixel_scale=PIXEL_SCALE, exposure_time=2200.0, magnitude_zero_point=ZERO_POINT, read_noise=3.0,
-                      ccd_gain=1.58, sky_brightness=21.83, num_exposures=1, psf_type="NONE",
-                      data_count_unit="e-")
+    band = SingleBand(
+        pixel_scale=PIXEL_SCALE,
+        exposure_time=2200.0,
+        magnitude_zero_point=ZERO_POINT,
+        read_noise=3.0,
+        ccd_gain=1.58,
+        sky_brightness=21.83,
+        num_exposures=1,
+        psf_type="NONE",
+        data_count_unit="e-",
+    )
     return band

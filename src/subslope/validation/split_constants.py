@@ -30,8 +30,17 @@ import torch
 from subslope.physics.pairs import sums as pair_sums
 from subslope.render import nearfar
 
-__all__ = ["ORDERS", "PLACEMENTS", "constant_classes", "grid_side", "random_members", "worst_ratios",
-           "class_rows", "measure_tables", "round_significant"]
+__all__ = [
+    "ORDERS",
+    "PLACEMENTS",
+    "constant_classes",
+    "grid_side",
+    "random_members",
+    "worst_ratios",
+    "class_rows",
+    "measure_tables",
+    "round_significant",
+]
 
 F64 = torch.float64
 ORDERS = (4, 6, 8)
@@ -41,7 +50,10 @@ PLACEMENTS = ("interior", "edge")
 def constant_classes(gamma_edges: Sequence[float]) -> list[tuple[str, tuple[float, float] | None]]:
     """``(profile, γ range or None)`` of every class, in the order of the tables' rows."""
     edges = (1.01, *gamma_edges, 2.99)
-    return [("epl", (lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])] + [("nfw", None), ("tnfw", None)]
+    return [("epl", (lo, hi)) for lo, hi in zip(edges[:-1], edges[1:])] + [
+        ("nfw", None),
+        ("tnfw", None),
+    ]
 
 
 def grid_side(where: str, spacing: int, grid: int, rho_ladder: Sequence[float]) -> int:
@@ -52,8 +64,15 @@ def grid_side(where: str, spacing: int, grid: int, rho_ladder: Sequence[float]) 
     return 2 * int(np.ceil((rho_ladder[-1] + 5) * spacing)) + 1
 
 
-def random_members(profile: str, n: int, h: float, m: int, rng: np.random.Generator, where: str,
-                   gamma: tuple[float, float] = (1.01, 2.99)) -> list[dict[str, torch.Tensor]]:
+def random_members(
+    profile: str,
+    n: int,
+    h: float,
+    m: int,
+    rng: np.random.Generator,
+    where: str,
+    gamma: tuple[float, float] = (1.01, 2.99),
+) -> list[dict[str, torch.Tensor]]:
     """``n`` members of ``profile`` (parameter tensors ``(1, 1)``, grid step 1)."""
     out = []
     for _ in range(n):
@@ -64,7 +83,12 @@ def random_members(profile: str, n: int, h: float, m: int, rng: np.random.Genera
         if profile == "epl":
             e = rng.uniform(0, 0.28)
             phi = rng.uniform(0, np.pi)
-            p = {"amp": 1.0, "gamma": rng.uniform(*gamma), "e1": e * np.cos(2 * phi), "e2": e * np.sin(2 * phi)}
+            p = {
+                "amp": 1.0,
+                "gamma": rng.uniform(*gamma),
+                "e1": e * np.cos(2 * phi),
+                "e2": e * np.sin(2 * phi),
+            }
         else:
             r_s = h * np.exp(rng.uniform(np.log(0.1), np.log(30)))
             p = {"r_s": r_s, "alpha_rs": 1.0}
@@ -75,7 +99,9 @@ def random_members(profile: str, n: int, h: float, m: int, rng: np.random.Genera
     return out
 
 
-def worst_ratios(profile: str, members, rho: float, orders: Sequence[int], spacing: int, m: int) -> dict[int, float]:
+def worst_ratios(
+    profile: str, members, rho: float, orders: Sequence[int], spacing: int, m: int
+) -> dict[int, float]:
     """Worst ratio (interpolation error / max ``|α|`` on ``r = r_c``) over ``members`` per order."""
     h = float(spacing)  # grid step = 1
     ax1 = torch.arange(m, dtype=F64) - (m - 1) / 2
@@ -88,11 +114,14 @@ def worst_ratios(profile: str, members, rho: float, orders: Sequence[int], spaci
     rc = rho * h
     for p in members:
         table = pair_sums.member_table(profile, p, 14)
-        fx, fy, _ = pair_sums.far_sums(x, y, table, profile, torch.full((1, 1), 1.0 / rc**2, dtype=F64))
+        fx, fy, _ = pair_sums.far_sums(
+            x, y, table, profile, torch.full((1, 1), 1.0 / rc**2, dtype=F64)
+        )
         rows = [table[:, k, :, None] for k in range(table.shape[1])]
         ang = torch.arange(4, dtype=F64) * (np.pi / 2) + np.pi / 4
-        cax, cay, _ = pair_sums.PAIR_FUNCTIONS[profile](rows[0] + rc * torch.cos(ang), rows[1] + rc * torch.sin(ang),
-                                                        rows)
+        cax, cay, _ = pair_sums.PAIR_FUNCTIONS[profile](
+            rows[0] + rc * torch.cos(ang), rows[1] + rc * torch.sin(ang), rows
+        )
         bound = float(torch.hypot(cax, cay).max())
         for o, lagrange in mats.items():
             err = 0.0
@@ -103,9 +132,17 @@ def worst_ratios(profile: str, members, rho: float, orders: Sequence[int], spaci
     return worst
 
 
-def class_rows(*, members: int, spacing: int, grid: int, safety: float, seed: int,
-               rho_ladder: Sequence[float], gamma_edges: Sequence[float],
-               only: tuple[str, int] | None = None) -> Iterator[tuple[str, str, int, int, list[float]]]:
+def class_rows(
+    *,
+    members: int,
+    spacing: int,
+    grid: int,
+    safety: float,
+    seed: int,
+    rho_ladder: Sequence[float],
+    gamma_edges: Sequence[float],
+    only: tuple[str, int] | None = None,
+) -> Iterator[tuple[str, str, int, int, list[float]]]:
     """``(where, profile, class row, order, C_p(ρ) on the ladder)`` for every class.
 
     The members of every class are drawn in table order from one generator seeded
@@ -118,7 +155,9 @@ def class_rows(*, members: int, spacing: int, grid: int, safety: float, seed: in
         m = grid_side(where, spacing, grid, rho_ladder)
         row_of: dict[str, int] = {}
         for index, (profile, gam) in enumerate(classes):
-            draw = random_members(profile, members, float(spacing), m, rng, where, **({"gamma": gam} if gam else {}))
+            draw = random_members(
+                profile, members, float(spacing), m, rng, where, **({"gamma": gam} if gam else {})
+            )
             row = row_of.get(profile, 0)
             row_of[profile] = row + 1
             if only is not None and only != (where, index):
@@ -138,9 +177,16 @@ def measure_tables(*, seeds: Sequence[int], round_digits: int = 2, **kwargs: Any
             while len(rows) <= row:
                 rows.append([0.0] * len(values))
             rows[row] = [max(a, b) for a, b in zip(rows[row], values)]
-    return {where: {p: {o: [[round_significant(v, round_digits) for v in r] for r in rows]
-                        for o, rows in by_order.items()} for p, by_order in by_profile.items()}
-            for where, by_profile in tables.items()}
+    return {
+        where: {
+            p: {
+                o: [[round_significant(v, round_digits) for v in r] for r in rows]
+                for o, rows in by_order.items()
+            }
+            for p, by_order in by_profile.items()
+        }
+        for where, by_profile in tables.items()
+    }
 
 
 def round_significant(value: float, digits: int) -> float:

@@ -20,7 +20,8 @@ The run without the sheet is a diagnostic only (the renderer always includes the
 it wraps :func:`subslope.render.pipeline._population_pass` so that the sheet's deflection is
 subtracted again (:func:`sheet_off`).
 
-:func:`subslope.validation.lenstronomy.lenstronomy_model` renders the same inputs with lenstronomy (an optional,
+:func:`subslope.validation.lenstronomy.lenstronomy_model` renders the same inputs with lenstronomy
+(an optional,
 test-only reference: EPL main lens, SHEAR, two MULTIPOLEs, EPL subhalos with
 θ_E = A^(1/(γ−1)) and a CONVERGENCE sheet of −mean κ over the pixel centres,
 SERSIC_ELLIPSE source, PIXEL PSF).
@@ -35,16 +36,22 @@ from typing import Any
 import numpy as np
 import torch
 
+from subslope.physics.grid import pixel_grid
+from subslope.physics.instrument import NPIX, PIXEL_SCALE
+from subslope.physics.profiles.epl import epl_convergence
 from subslope.render import pipeline as R
 from subslope.simulation import macro as _macro
 from subslope.simulation import scenes as _scenes
 from subslope.simulation import subhalos as _subhalos
-from subslope.physics.grid import pixel_grid
-from subslope.physics.profiles.epl import epl_convergence
-from subslope.physics.instrument import NPIX, PIXEL_SCALE
 
-__all__ = ["StiffCase", "stiff_system", "stiff_cases", "summed_subhalo_kappa", "sheet_off",
-           "format_table"]
+__all__ = [
+    "StiffCase",
+    "stiff_system",
+    "stiff_cases",
+    "summed_subhalo_kappa",
+    "sheet_off",
+    "format_table",
+]
 
 
 @dataclass
@@ -81,34 +88,50 @@ def sheet_off():
         R.population_pass = orig
 
 
-def summed_subhalo_kappa(subs, npix: int = NPIX, pixel_scale: float = PIXEL_SCALE, chunk: int = 128) -> np.ndarray:
-    """Summed convergence of an EPL population of ONE system at the pixel centres, (npix, npix), float64."""
+def summed_subhalo_kappa(
+    subs, npix: int = NPIX, pixel_scale: float = PIXEL_SCALE, chunk: int = 128
+) -> np.ndarray:
+    """Summed convergence of an EPL population of ONE system at the pixel centres, (npix, npix),
+    float64."""
     x, y = pixel_grid(npix, pixel_scale, dtype=torch.float64)
     x, y = x.reshape(1, -1), y.reshape(1, -1)
     total = torch.zeros(x.shape[1], dtype=torch.float64)
     n = int(np.sum(subs.counts))
     for s in range(0, n, chunk):
-        p = {k: torch.as_tensor(np.asarray(getattr(subs, k))[s:s + chunk], dtype=torch.float64)[:, None]
-             for k in ("amp", "gamma", "e1", "e2", "x", "y")}
-        total += epl_convergence(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"]).sum(0)
+        p = {
+            k: torch.as_tensor(np.asarray(getattr(subs, k))[s : s + chunk], dtype=torch.float64)[
+                :, None
+            ]
+            for k in ("amp", "gamma", "e1", "e2", "x", "y")
+        }
+        total += epl_convergence(x, y, p["amp"], p["gamma"], p["e1"], p["e2"], p["x"], p["y"]).sum(
+            0
+        )
     return total.reshape(npix, npix).numpy()
 
 
-def stiff_system(seed: int = 6, source: str = "sersic") -> tuple[_scenes.Scene, dict[str, np.ndarray]]:
+def stiff_system(
+    seed: int = 6, source: str = "sersic"
+) -> tuple[_scenes.Scene, dict[str, np.ndarray]]:
     """One ``train``-scene system (lens light and LoS off) with a parametric source."""
     scene = _scenes.Scene.from_config(
-        "train", {"source": {"kind": source}, "components": {"los": False, "lens_light": False}})
+        "train", {"source": {"kind": source}, "components": {"los": False, "lens_light": False}}
+    )
     return scene, _macro.sample_macro(scene, 1, np.random.default_rng(seed))
 
 
 def _cosmos_sources(macro, folder, seed):
-    from subslope.physics.light.pixelated import pad_stamps
     from subslope.io.cosmos import CosmosCatalog, place_at_redshift
+    from subslope.physics.light.pixelated import pad_stamps
 
     cat = CosmosCatalog.load(folder)
     row = cat.table.iloc[int(np.random.default_rng(seed).integers(len(cat.table)))]
-    sb, ps = place_at_redshift(cat.stamp(int(row["ident"])), float(row["pixel_scale"]), float(row["zphot"]),
-                               float(macro["z_source"][0]))
+    sb, ps = place_at_redshift(
+        cat.stamp(int(row["ident"])),
+        float(row["pixel_scale"]),
+        float(row["zphot"]),
+        float(macro["z_source"][0]),
+    )
     st, off = pad_stamps([sb], dtype=torch.float64)
     return R.PixelatedSources(stamps=st, pixel_scale=np.asarray([ps]), offsets=off)
 
@@ -143,7 +166,9 @@ def stiff_cases(
         sources = _cosmos_sources(macro, cosmos_folder, seed)
     macro["n_sub"] = np.array([n_sub], dtype=np.int64)
     psf = torch.as_tensor(psf, dtype=settings.dtype)
-    smooth = R.render_smooth(macro, psf, settings, sources=sources)[0].cpu().numpy().astype(np.float64)
+    smooth = (
+        R.render_smooth(macro, psf, settings, sources=sources)[0].cpu().numpy().astype(np.float64)
+    )
     frac = scene.subhalos.threshold_fraction
     arc = smooth > frac * smooth.max()
     n, d = settings.npix, settings.pixel_scale
@@ -154,36 +179,66 @@ def stiff_cases(
     def numbers(label, img, gamma, sheet, kap):
         km = float(kap.mean()) if kap is not None else 0.0
         ks = -km if sheet else 0.0
-        return StiffCase(label, gamma, 0 if kap is None else n_sub, sheet,
-                         float(img[arc].sum() / smooth[arc].sum()), float(img[centre].sum()),
-                         float(img.sum() / smooth.sum()), km,
-                         float(kap.min()) if kap is not None else 0.0,
-                         float(kap.max()) if kap is not None else 0.0, ks, km + ks)
+        return StiffCase(
+            label,
+            gamma,
+            0 if kap is None else n_sub,
+            sheet,
+            float(img[arc].sum() / smooth[arc].sum()),
+            float(img[centre].sum()),
+            float(img.sum() / smooth.sum()),
+            km,
+            float(kap.min()) if kap is not None else 0.0,
+            float(kap.max()) if kap is not None else 0.0,
+            ks,
+            km + ks,
+        )
 
     images = {"smooth (N_sub = 0)": smooth}
     cases = [numbers("smooth (N_sub = 0)", smooth, None, False, None)]
     pops = {}
     for gam in gammas:
         m = dict(macro, gamma_sub=np.array([float(gam)]))
-        subs = _subhalos.sample_subhalos(scene, m, np.random.default_rng(seed + 1), smooth_images=smooth[None])
+        subs = _subhalos.sample_subhalos(
+            scene, m, np.random.default_rng(seed + 1), smooth_images=smooth[None]
+        )
         pops[gam] = subs
         kap = summed_subhalo_kappa(subs, n, d)
         for sheet in sheets:
             ctx = contextlib.nullcontext() if sheet else sheet_off()
             with ctx:
-                img = R.render(m, psf, settings, sources=sources, subhalos=subs)[0].cpu().numpy().astype(np.float64)
+                img = (
+                    R.render(m, psf, settings, sources=sources, subhalos=subs)[0]
+                    .cpu()
+                    .numpy()
+                    .astype(np.float64)
+                )
             label = f"γ = {gam:g}, N_sub = {n_sub}, sheet {'on' if sheet else 'off'}"
             images[label] = img
             cases.append(numbers(label, img, float(gam), sheet, kap))
-    return {"images": images, "cases": cases, "arc_mask": arc, "macro": macro, "subhalos": pops,
-            "centre": centre, "sources": sources, "settings": settings}
+    return {
+        "images": images,
+        "cases": cases,
+        "arc_mask": arc,
+        "macro": macro,
+        "subhalos": pops,
+        "centre": centre,
+        "sources": sources,
+        "settings": settings,
+    }
 
 
 def format_table(cases) -> str:
     """Markdown table of :class:`StiffCase` rows."""
-    head = ("| case | arc flux / smooth | central 5×5 (e⁻/s) | total / smooth | mean Σκ_sub | "
-            "min Σκ_sub | max Σκ_sub | κ_sheet | mean(Σκ_sub + sheet) |\n|---|---|---|---|---|---|---|---|---|")
-    rows = [f"| {c.label} | {c.arc_ratio:.3f} | {c.centre_flux:.4f} | {c.total_ratio:.3f} | {c.kappa_mean:.3f} | "
-            f"{c.kappa_min:.3f} | {c.kappa_max:.3f} | {c.kappa_sheet:.3f} | {c.kappa_total_mean:.1e} |"
-            for c in cases]
+    head = (
+        "| case | arc flux / smooth | central 5×5 (e⁻/s) | total / smooth | mean Σκ_sub | "
+        "min Σκ_sub | max Σκ_sub | κ_sheet | mean(Σκ_sub + sheet) "
+        "|\n|---|---|---|---|---|---|---|---|---|"
+    )
+    rows = [
+        f"| {c.label} | {c.arc_ratio:.3f} | {c.centre_flux:.4f} | {c.total_ratio:.3f} | "
+        f"{c.kappa_mean:.3f} | "
+        f"{c.kappa_min:.3f} | {c.kappa_max:.3f} | {c.kappa_sheet:.3f} | {c.kappa_total_mean:.1e} |"
+        for c in cases
+    ]
     return "\n".join([head, *rows])

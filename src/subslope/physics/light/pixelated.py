@@ -150,13 +150,17 @@ def pad_stamps(stamps, *, dtype=None, device=None) -> tuple[torch.Tensor, torch.
     pass them as ``stamp_offset_x=offsets[:, 0:1]``, ``stamp_offset_y=offsets[:, 1:2]``
     to :func:`pixelated_light` so each source stays centred on its own centre.
     """
-    arrays = [torch.as_tensor(np.asarray(s) if not isinstance(s, torch.Tensor) else s) for s in stamps]
+    arrays = [
+        torch.as_tensor(np.asarray(s) if not isinstance(s, torch.Tensor) else s) for s in stamps
+    ]
     if not arrays:
         raise ValueError("stamps must contain at least one 2-D array")
     for k, a in enumerate(arrays):
         if a.ndim != 2:
             raise ValueError(f"stamps[{k}] must be 2-D, got shape {tuple(a.shape)}")
-    dtype = dtype or (arrays[0].dtype if arrays[0].is_floating_point() else torch.get_default_dtype())
+    dtype = dtype or (
+        arrays[0].dtype if arrays[0].is_floating_point() else torch.get_default_dtype()
+    )
     hmax = max(a.shape[0] for a in arrays)
     wmax = max(a.shape[1] for a in arrays)
     out = torch.zeros(len(arrays), hmax, wmax, dtype=dtype, device=device)
@@ -185,5 +189,12 @@ class PixelatedSource:
     def surface_brightness(self, x, y) -> torch.Tensor:
         """e⁻/s per arcsec² at (x, y) (arcsec)."""
         return pixelated_light(
-            x, y, self.stamps, self.pixel_scale, self.angle, self.center_x, self.center_y, order=self.order
+            x,
+            y,
+            self.stamps,
+            self.pixel_scale,
+            self.angle,
+            self.center_x,
+            self.center_y,
+            order=self.order,
         )

@@ -37,6 +37,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+
 from subslope.physics.instrument import ZERO_POINT
 
 __all__ = [
@@ -51,7 +52,9 @@ __all__ = [
     "sersic_ellipse",
     "sersic_ellipse_from_magnitude",
     "multi_sersic_from_magnitude",
-    "SersicEllipse", "e1e2_to_q_phi"]
+    "SersicEllipse",
+    "e1e2_to_q_phi",
+]
 
 ZERO_POINT_F814W = ZERO_POINT
 _LN10 = math.log(10.0)
@@ -131,7 +134,9 @@ def elliptical_radius_squared(x, y, e1, e2, center_x=0.0, center_y=0.0) -> torch
     dy = y - _as_tensor(center_y, x)
     esq = e1 * e1 + e2 * e2
     norm = (1.0 - esq).abs().clamp(min=1e-6)
-    r2 = (dx * dx * (1.0 - 2.0 * e1 + esq) + dy * dy * (1.0 + 2.0 * e1 + esq) - 4.0 * e2 * dx * dy) / norm
+    r2 = (
+        dx * dx * (1.0 - 2.0 * e1 + esq) + dy * dy * (1.0 + 2.0 * e1 + esq) - 4.0 * e2 * dx * dy
+    ) / norm
     return r2.clamp(min=0.0)
 
 
@@ -165,7 +170,9 @@ def sersic_ellipse(
     center_x, center_y : arcsec
     r_floor : R is floored at this radius (arcsec), see module docstring
     """
-    log_shape, _, _ = _sersic_log_shape(x, y, r_sersic, n_sersic, e1, e2, center_x, center_y, r_floor)
+    log_shape, _, _ = _sersic_log_shape(
+        x, y, r_sersic, n_sersic, e1, e2, center_x, center_y, r_floor
+    )
     return _as_tensor(amp, log_shape) * torch.exp(log_shape)
 
 
@@ -188,7 +195,9 @@ def sersic_ellipse_from_magnitude(
     Computed as one exponential, exp(ln F − ln(F/I_0) − b_n(...)), so no intermediate
     overflows for large n.
     """
-    log_shape, rs, n = _sersic_log_shape(x, y, r_sersic, n_sersic, e1, e2, center_x, center_y, r_floor)
+    log_shape, rs, n = _sersic_log_shape(
+        x, y, r_sersic, n_sersic, e1, e2, center_x, center_y, r_floor
+    )
     mag = _as_tensor(magnitude, log_shape)
     log_flux = -0.4 * _LN10 * (mag - zero_point)
     return torch.exp(log_flux - sersic_log_flux_per_amp(rs, n) + log_shape)
@@ -221,18 +230,36 @@ def multi_sersic_from_magnitude(
     Components are added in order k = 0, 1, … (a fixed order: deterministic).
     """
     k = len(fractions)
-    for name, seq in (("r_sersic", r_sersic), ("n_sersic", n_sersic), ("e1", e1), ("e2", e2),
-                      ("center_x", center_x), ("center_y", center_y)):
+    for name, seq in (
+        ("r_sersic", r_sersic),
+        ("n_sersic", n_sersic),
+        ("e1", e1),
+        ("e2", e2),
+        ("center_x", center_x),
+        ("center_y", center_y),
+    ):
         if len(seq) != k:
-            raise ValueError(f"multi_sersic_from_magnitude: {name} has {len(seq)} components, fractions has {k}")
+            raise ValueError(
+                f"multi_sersic_from_magnitude: {name} has {len(seq)} components, fractions has {k}"
+            )
     out = None
     for j in range(k):
         f = _as_tensor(fractions[j], x if isinstance(x, torch.Tensor) else None)
         if not bool((f > 0).any()):
             continue
         sb = f.clamp(min=0.0) * sersic_ellipse_from_magnitude(
-            x, y, magnitude, r_sersic[j], n_sersic[j], e1[j], e2[j], center_x[j], center_y[j],
-            zero_point=zero_point, r_floor=r_floor)
+            x,
+            y,
+            magnitude,
+            r_sersic[j],
+            n_sersic[j],
+            e1[j],
+            e2[j],
+            center_x[j],
+            center_y[j],
+            zero_point=zero_point,
+            r_floor=r_floor,
+        )
         out = sb if out is None else out + sb
     if out is None:
         xt = _as_tensor(x)
@@ -278,6 +305,15 @@ class SersicEllipse:
     def surface_brightness(self, x, y, *, r_floor: float = 1e-4) -> torch.Tensor:
         """e⁻/s per arcsec² at (x, y) (arcsec)."""
         return sersic_ellipse_from_magnitude(
-            x, y, self.magnitude, self.r_sersic, self.n_sersic, self.e1, self.e2,
-            self.center_x, self.center_y, zero_point=self.zero_point, r_floor=r_floor,
+            x,
+            y,
+            self.magnitude,
+            self.r_sersic,
+            self.n_sersic,
+            self.e1,
+            self.e2,
+            self.center_x,
+            self.center_y,
+            zero_point=self.zero_point,
+            r_floor=r_floor,
         )

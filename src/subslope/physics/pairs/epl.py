@@ -29,15 +29,21 @@ def _chebyshev_fit(fn, lo: float, hi: float, degree: int) -> tuple[tuple[int, in
     a literal (as in :mod:`subslope.physics.pairs.nfw`)."""
     t = np.cos(np.pi * (np.arange(400) + 0.5) / 400)
     xs = 0.5 * (hi + lo) + 0.5 * (hi - lo) * t
-    return tuple(float(c).as_integer_ratio() for c in np.polynomial.polynomial.polyfit(xs, fn(xs), degree))
+    return tuple(
+        float(c).as_integer_ratio() for c in np.polynomial.polynomial.polyfit(xs, fn(xs), degree)
+    )
 
 
 _SQRT_HALF = math.sqrt(0.5)
 #: ``log2(1 + x) / x`` on ``x ∈ [√½ − 1, √2 − 1]``, degree 7: relative error 1.7e-7.
-_LOG2_COEF = _chebyshev_fit(lambda x: np.log2(1 + x) / np.where(x == 0, 1, x) + (x == 0) / math.log(2),
-                            _SQRT_HALF - 1, math.sqrt(2) - 1, 7)
+_LOG2_COEF = _chebyshev_fit(
+    lambda x: np.log2(1 + x) / np.where(x == 0, 1, x) + (x == 0) / math.log(2),
+    _SQRT_HALF - 1,
+    math.sqrt(2) - 1,
+    7,
+)
 #: ``2^f`` on ``f ∈ [−1/2, 1/2]``, degree 5: relative error 1.0e-7.
-_EXP2_COEF = _chebyshev_fit(lambda f: 2.0 ** f, -0.5, 0.5, 5)
+_EXP2_COEF = _chebyshev_fit(lambda f: 2.0**f, -0.5, 0.5, 5)
 
 
 def _horner(x: Tensor, coef: tuple[tuple[int, int], ...]) -> Tensor:
@@ -83,8 +89,19 @@ def epl_table(p: dict[str, Tensor], n_terms: int) -> Tensor:
     t = gamma - 1
     f = (1 - q) / (1 + q)
     amp_q = amp * torch.pow(q, 0.5 * t)
-    rows = [p["x"], p["y"], q * c, q * s, c, s, -f, f * f, -0.5 * t,
-            (2 / (1 + q)) * amp_q, (0.5 * (3 - gamma)) * amp_q]
+    rows = [
+        p["x"],
+        p["y"],
+        q * c,
+        q * s,
+        c,
+        s,
+        -f,
+        f * f,
+        -0.5 * t,
+        (2 / (1 + q)) * amp_q,
+        (0.5 * (3 - gamma)) * amp_q,
+    ]
     rows += series_coefficients(gamma, n_terms)[1:]
     return torch.stack(rows, -2)
 

@@ -26,14 +26,22 @@ Measured (``tests/test_pair_kernels.py``): relative error against the profile mo
 from __future__ import annotations
 
 import math
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["nfw_table", "nfw_pair", "tnfw_table", "tnfw_pair", "POLY_DEFS", "POLY_COEFFICIENTS", "fast_log"]
+__all__ = [
+    "nfw_table",
+    "nfw_pair",
+    "tnfw_table",
+    "tnfw_pair",
+    "POLY_DEFS",
+    "POLY_COEFFICIENTS",
+    "fast_log",
+]
 
 
 # ------------------------------------------------------ NFW / tNFW: numerical pieces
@@ -41,6 +49,7 @@ __all__ = ["nfw_table", "nfw_pair", "tnfw_table", "tnfw_pair", "POLY_DEFS", "POL
 # ``POLY_COEFFICIENTS``): under ``torch.compile(dynamic=True)`` a module-level float becomes a graph
 # input, whose reads push intermediates past inductor's realisation thresholds and split
 # the fused loop into (N, Q) buffers; ints are specialised and ``p / q`` folds to a literal.
+
 
 def _np_nfw_F_f(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """NFW ``F(x)`` and ``f(x) = (1 - F)/(x^2 - 1)`` in float64 (numpy, x > 0); ``f``
@@ -70,6 +79,7 @@ def _np_ratio(fn, t: np.ndarray, taylor: np.ndarray, radius: float) -> np.ndarra
 def _np_p1(t):
     """``(P(t) - 1)/t`` with ``P(t) = atanh(sqrt t)/sqrt t`` (t > 0), ``atan(sqrt -t)/sqrt -t``
     (t < 0): the NFW ``F`` of ``x = (1 - t)/(1 + t)`` is ``(1 + t) P(t)``."""
+
     def closed(t):
         r = np.sqrt(np.abs(t))
         return (np.where(t > 0, np.arctanh(np.minimum(r, 1 - 1e-16)), np.arctan(r)) / r - 1.0) / t
@@ -82,19 +92,25 @@ def _np_beta(w):
     """``B0(x)/w^4``, ``B0 = f + 2F - pi w + w^2``, ``w = 1/x``: the truncated-NFW
     convergence bracket as ``r_t -> 0`` (large-``x`` series: ``1/2 sum_n W_n (-1)^n
     (n+1) w^n``, ``W_n = sqrt(pi) Gamma((n+4)/2)/Gamma((n+5)/2)``, for ``w < 0.5``)."""
+
     def closed(w):
         F, f = _np_nfw_F_f(1.0 / w)
         return (f + 2.0 * F - np.pi * w + w * w) / w**4
 
     n = np.arange(120)
-    weights = np.array([math.exp(0.5 * math.log(math.pi) + math.lgamma((k + 4) / 2) - math.lgamma((k + 5) / 2))
-                        for k in n])
+    weights = np.array(
+        [
+            math.exp(0.5 * math.log(math.pi) + math.lgamma((k + 4) / 2) - math.lgamma((k + 5) / 2))
+            for k in n
+        ]
+    )
     return _np_ratio(closed, w, 0.5 * weights * (-1.0) ** n * (n + 1), 0.5)
 
 
 def _np_phi(w):
     """``(f - w^2 + pi/2 w^3)/w^4`` at ``x = 1/w`` (series from ``F = w arccos(w)/sqrt(1-w^2)``,
     whose Taylor coefficients obey ``(n+1) c_{n+1} = n c_{n-1}``, for ``w < 0.5``)."""
+
     def closed(w):
         return (_np_nfw_F_f(1.0 / w)[1] - w * w + 0.5 * np.pi * w**3) / w**4
 
@@ -120,25 +136,56 @@ _TK = np.arange(80)
 #: name -> (function, interval, degree for float32, degree for float64). Fitted once at
 #: import; measured accuracy of the fits in ``tests/test_pair_kernels.py``.
 POLY_DEFS = {
-    "ln": (lambda q: _np_ratio(lambda q: np.arctanh(np.sqrt(q)) / np.sqrt(q), q, 1.0 / (2 * _TK + 1), 0.01),
-           (0.0, 0.0295), 3, 7),                              # atanh(s)/s, q = s^2
-    "l1": (lambda y: _np_ratio(lambda y: np.log1p(y) / y, y, (-1.0) ** _TK / (_TK + 1), 0.01),
-           (-0.083, 0.0), 5, 10),                             # log1p(y)/y
-    "h3": (lambda v: _np_ratio(lambda v: (np.log1p(v) - v + 0.5 * v * v) / v**3, v, (-1.0) ** _TK / (_TK + 3), 0.5),
-           (0.0, 1.0), 9, 20),                                # (log1p(v) - v + v^2/2)/v^3
+    "ln": (
+        lambda q: _np_ratio(
+            lambda q: np.arctanh(np.sqrt(q)) / np.sqrt(q), q, 1.0 / (2 * _TK + 1), 0.01
+        ),
+        (0.0, 0.0295),
+        3,
+        7,
+    ),  # atanh(s)/s, q = s^2
+    "l1": (
+        lambda y: _np_ratio(lambda y: np.log1p(y) / y, y, (-1.0) ** _TK / (_TK + 1), 0.01),
+        (-0.083, 0.0),
+        5,
+        10,
+    ),  # log1p(y)/y
+    "h3": (
+        lambda v: _np_ratio(
+            lambda v: (np.log1p(v) - v + 0.5 * v * v) / v**3, v, (-1.0) ** _TK / (_TK + 3), 0.5
+        ),
+        (0.0, 1.0),
+        9,
+        20,
+    ),  # (log1p(v) - v + v^2/2)/v^3
     "p1": (_np_p1, (-1.0, 0.3), 12, 24),
-    "as": (lambda q: _np_ratio(lambda q: np.arcsin(np.sqrt(q)) / np.sqrt(q), q,
-                               np.cumprod(np.r_[1.0, (2 * _TK[1:] - 1) / (2 * _TK[1:])]) / (2 * _TK + 1), 0.01),
-           (0.0, 0.25), 5, 10),                               # asin(s)/s, q = s^2
+    "as": (
+        lambda q: _np_ratio(
+            lambda q: np.arcsin(np.sqrt(q)) / np.sqrt(q),
+            q,
+            np.cumprod(np.r_[1.0, (2 * _TK[1:] - 1) / (2 * _TK[1:])]) / (2 * _TK + 1),
+            0.01,
+        ),
+        (0.0, 0.25),
+        5,
+        10,
+    ),  # asin(s)/s, q = s^2
     "b0": (_np_beta, (0.0, 2.0), 15, 28),
     "phi": (_np_phi, (0.0, 2.0), 14, 26),
 }
 #: float64 flag -> name -> ``(c, 1/h, a)`` of :func:`_chebyshev`, each float as the exact
 #: integer ratio ``float.as_integer_ratio()``.
-POLY_COEFFICIENTS: dict[bool, dict[str, Any]] = {double: {name: tuple(map(float.as_integer_ratio, fit[:2])) + (tuple(map(float.as_integer_ratio, fit[2])),)
-                   for name, fit in ((name, _chebyshev(fn, lo, hi, deg[double]))
-                                     for name, (fn, (lo, hi), *deg) in POLY_DEFS.items())}
-          for double in (False, True)}
+POLY_COEFFICIENTS: dict[bool, dict[str, Any]] = {
+    double: {
+        name: tuple(map(float.as_integer_ratio, fit[:2]))
+        + (tuple(map(float.as_integer_ratio, fit[2])),)
+        for name, fit in (
+            (name, _chebyshev(fn, lo, hi, deg[double]))
+            for name, (fn, (lo, hi), *deg) in POLY_DEFS.items()
+        )
+    }
+    for double in (False, True)
+}
 
 
 def _poly(t: Tensor, name: str, unit: Tensor) -> Tensor:
@@ -149,18 +196,20 @@ def _poly(t: Tensor, name: str, unit: Tensor) -> Tensor:
     (cn, cd), (hn, hd), coef = POLY_COEFFICIENTS[t.dtype == torch.float64][name]
     a = [n / d for n, d in coef]
     v = (t - cn / cd if cn else t) * ((hn / hd) * unit)
-    terms = [a[k] + a[k + 1] * v for k in range(0, len(a) - 1, 2)] + list(a[len(a) - len(a) % 2:])
+    terms = [a[k] + a[k + 1] * v for k in range(0, len(a) - 1, 2)] + list(a[len(a) - len(a) % 2 :])
     p = v * v
     while len(terms) > 1:
-        odd = terms[len(terms) - len(terms) % 2:]
+        odd = terms[len(terms) - len(terms) % 2 :]
         terms = [terms[k] + p * terms[k + 1] for k in range(0, len(terms) - 1, 2)] + odd
         p = p * p
     return terms[0]
 
 
 #: dtype -> (integer view, mantissa bits, bits of 1.0, bits of sqrt(1/2)).
-_FLOAT_BITS = {torch.float32: (torch.int32, 23, 0x3F800000, 0x3F3504F3),
-               torch.float64: (torch.int64, 52, 0x3FF0000000000000, 0x3FE6A09E667F3BCD)}
+_FLOAT_BITS = {
+    torch.float32: (torch.int32, 23, 0x3F800000, 0x3F3504F3),
+    torch.float64: (torch.int64, 52, 0x3FF0000000000000, 0x3FE6A09E667F3BCD),
+}
 
 
 def fast_log(z: Tensor, unit: Tensor) -> Tensor:
@@ -249,7 +298,9 @@ def nfw_table(p: dict[str, Tensor], n_terms: int = 0) -> Tensor:
     amp = p["alpha_rs"]
     r_s = torch.where(amp == 0, torch.ones_like(p["r_s"]), p["r_s"])
     scale = amp / ((1.0 + math.log(0.5)) * r_s)
-    return torch.stack([p["x"], p["y"], 1.0 / (r_s * r_s), scale, 0.5 * scale, torch.ones_like(amp)], -2)
+    return torch.stack(
+        [p["x"], p["y"], 1.0 / (r_s * r_s), scale, 0.5 * scale, torch.ones_like(amp)], -2
+    )
 
 
 def nfw_pair(x: Tensor, y: Tensor, rows: Sequence[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
@@ -275,7 +326,8 @@ def nfw_pair(x: Tensor, y: Tensor, rows: Sequence[Tensor]) -> tuple[Tensor, Tens
 # ------------------------------------------------------------------------------ tNFW
 def tnfw_table(p: dict[str, Tensor], n_terms: int = 0) -> Tensor:
     """Truncated-NFW member table ``(b, 13, N)`` from ``(b, N)`` parameters ``r_s, alpha_rs,
-    r_t, x, y`` (arcsec; lenstronomy ``TNFW``, :mod:`subslope.physics.profiles.tnfw`). ``n_terms`` is
+    r_t, x, y`` (arcsec; lenstronomy ``TNFW``, :mod:`subslope.physics.profiles.tnfw`). ``n_terms``
+    is
     ignored.
 
     Rows: ``cx, cy`` (arcsec), ``1/r_s^2`` (arcsec^-2), then dimensionless ``A p, A p/2,
@@ -289,8 +341,21 @@ def tnfw_table(p: dict[str, Tensor], n_terms: int = 0) -> Tensor:
     tau = torch.where(pad, torch.ones_like(p["r_t"]), p["r_t"]) / r_s
     t2 = tau * tau
     scale = amp / ((1.0 + math.log(0.5)) * r_s) * (tau / (t2 + 1.0)) ** 2
-    rows = [p["x"], p["y"], 1.0 / (r_s * r_s), scale, 0.5 * scale, tau, t2, t2 - 1.0, t2 + 1.0,
-            (t2 - 1.0) / tau, torch.log(tau), 1.0 / tau, torch.ones_like(amp)]
+    rows = [
+        p["x"],
+        p["y"],
+        1.0 / (r_s * r_s),
+        scale,
+        0.5 * scale,
+        tau,
+        t2,
+        t2 - 1.0,
+        t2 + 1.0,
+        (t2 - 1.0) / tau,
+        torch.log(tau),
+        1.0 / tau,
+        torch.ones_like(amp),
+    ]
     return torch.stack(rows, -2)
 
 
@@ -342,8 +407,11 @@ def tnfw_pair(x: Tensor, y: Tensor, rows: Sequence[Tensor]) -> tuple[Tensor, Ten
     zl = tau * (1.0 + tau / qx) * w
     log1p_zl, zs, h = _log1p(zl, unit)
     big_l = -log1p_zl
-    i2 = torch.where(x2 > 4.0 + 4.0 * t2, (ln_tau + F + q * big_l * inv_tau) * inv_x2,
-                     g2 - log1p_z * inv_x2 + big_l * inv_tq)
+    i2 = torch.where(
+        x2 > 4.0 + 4.0 * t2,
+        (ln_tau + F + q * big_l * inv_tau) * inv_x2,
+        g2 - log1p_z * inv_x2 + big_l * inv_tq,
+    )
     pi = 3.141592653589793
     inv_tpq = tau * inv_tq
     wf = torch.clamp(w, max=0.5)
@@ -357,10 +425,16 @@ def tnfw_pair(x: Tensor, y: Tensor, rows: Sequence[Tensor]) -> tuple[Tensor, Ten
     wk2 = wk * wk
     wk4 = wk2 * wk2
     inv_qx2 = 1.0 / (qx * qx)
-    d = torch.where(zl < 1.0, t2 * tau * (tau + 2.0 * qx) * wk2 * inv_qx2 - zs * zs * zs * h, big_l + tau * q * wk2)
+    d = torch.where(
+        zl < 1.0,
+        t2 * tau * (tau + 2.0 * qx) * wk2 * inv_qx2 - zs * zs * zs * h,
+        big_l + tau * q * wk2,
+    )
     b0 = wk4 * _poly(wk, "b0", unit)
     k_in = b0 + pi * t2 * wk * inv_q / qx + t2 * f + (tau * big_l - d * inv_tau) * inv_q
-    phi_term = wk4 * _poly(wk, "phi", unit) - (0.5 * pi) * t2 * wk * wk2 * (2.0 * xs + q) * inv_q * inv_qx2
+    phi_term = (
+        wk4 * _poly(wk, "phi", unit) - (0.5 * pi) * t2 * wk * wk2 * (2.0 * xs + q) * inv_q * inv_qx2
+    )
     k_out = b0 + t2 * phi_term + c3 * d * inv_q
     kappa = scale_k * torch.where(x2 < 0.25, k_near, torch.where(xs < tau, k_in, k_out))
     return a_over_r * dx, a_over_r * dy, kappa

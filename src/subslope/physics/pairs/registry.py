@@ -38,10 +38,25 @@ class PairProfile:
 
 
 PAIR_PROFILES: dict[str, PairProfile] = {
-    "epl": PairProfile(epl_table, epl_pair, 9, ("amp", "gamma", "e1", "e2", "x", "y"),
-                       {"amp": 0.0, "gamma": 2.0, "e1": 0.0, "e2": 0.0, "x": 0.0, "y": 0.0}),
-    "nfw": PairProfile(nfw_table, nfw_pair, 3, ("r_s", "alpha_rs", "x", "y"),
-                       {"r_s": 1.0, "alpha_rs": 0.0, "x": 0.0, "y": 0.0}),
-    "tnfw": PairProfile(tnfw_table, tnfw_pair, 3, ("r_s", "alpha_rs", "r_t", "x", "y"),
-                        {"r_s": 1.0, "alpha_rs": 0.0, "r_t": 1.0, "x": 0.0, "y": 0.0}),
+    "epl": PairProfile(
+        epl_table,
+        epl_pair,
+        9,
+        ("amp", "gamma", "e1", "e2", "x", "y"),
+        {"amp": 0.0, "gamma": 2.0, "e1": 0.0, "e2": 0.0, "x": 0.0, "y": 0.0},
+    ),
+    "nfw": PairProfile(
+        nfw_table,
+        nfw_pair,
+        3,
+        ("r_s", "alpha_rs", "x", "y"),
+        {"r_s": 1.0, "alpha_rs": 0.0, "x": 0.0, "y": 0.0},
+    ),
+    "tnfw": PairProfile(
+        tnfw_table,
+        tnfw_pair,
+        3,
+        ("r_s", "alpha_rs", "r_t", "x", "y"),
+        {"r_s": 1.0, "alpha_rs": 0.0, "r_t": 1.0, "x": 0.0, "y": 0.0},
+    ),
 }

@@ -58,7 +58,8 @@ __all__ = [
 # ------------------------------------------------------------------------- registry
 #: profile name -> ``table(params, n_terms) -> (b, M, N)``.
 TABLE_FUNCTIONS: dict[str, Callable[[dict[str, Tensor], int], Tensor]] = {
-    name: p.table for name, p in PAIR_PROFILES.items()}
+    name: p.table for name, p in PAIR_PROFILES.items()
+}
 #: profile name -> row of the table that is zero exactly for padded members.
 AMPLITUDE_ROW: dict[str, int] = {name: p.amplitude_row for name, p in PAIR_PROFILES.items()}
 #: profile name -> ``pair(x, y, rows) -> (alpha_x, alpha_y, kappa)``.
@@ -68,7 +69,9 @@ PAIR_FUNCTIONS: dict[str, Callable] = {name: p.pair for name, p in PAIR_PROFILES
 def member_table(profile: str, params: dict[str, Tensor], n_terms: int) -> Tensor:
     """Member table ``(b, M, N)`` of a padded ``(b, N)`` population of ``profile``."""
     if profile not in TABLE_FUNCTIONS:
-        raise ValueError(f"no pair kernel for profile {profile!r}; known: {sorted(TABLE_FUNCTIONS)}")
+        raise ValueError(
+            f"no pair kernel for profile {profile!r}; known: {sorted(TABLE_FUNCTIONS)}"
+        )
     return TABLE_FUNCTIONS[profile](params, n_terms).contiguous()
 
 
@@ -109,7 +112,7 @@ def few_sums_with_sheet(x: Tensor, y: Tensor, table: Tensor, profile: str, n_pix
     ``κ_s = −mean(Σ_i κ_i)`` over the last ``n_pix`` points (the pixel-centre rays),
     returned as ``(alpha_x + κ_s x, alpha_y + κ_s y, κ_s)`` with ``κ_s`` ``(b, 1)``."""
     ax, ay, k = direct_sums_few(x, y, table, profile, True)
-    ks = -(k[:, k.shape[1] - n_pix:].sum(-1, keepdim=True) / n_pix)
+    ks = -(k[:, k.shape[1] - n_pix :].sum(-1, keepdim=True) / n_pix)
     return ax + ks * x, ay + ks * y, ks
 
 
@@ -127,14 +130,25 @@ def far_sums(x: Tensor, y: Tensor, table: Tensor, profile: str, inv_rc2: Tensor)
 def circle_peaks(table: Tensor, profile: str, radii: Tensor) -> Tensor:
     """Largest ``|alpha|`` of each member over 4 diagonal directions at each radius:
     ``(b, N, L)`` for ``table`` ``(b, M, N)`` and ``radii`` ``(L,)`` (arcsec)."""
-    d = radii[:, None, None] * torch.tensor([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]],
-                                      dtype=radii.dtype, device=radii.device)[None] * 0.7071067811865476
+    d = (
+        radii[:, None, None]
+        * torch.tensor(
+            [[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]],
+            dtype=radii.dtype,
+            device=radii.device,
+        )[None]
+        * 0.7071067811865476
+    )
     rows = [table[:, k, :, None] for k in range(table.shape[1])]  # (b, N, 1)
-    ax, ay, _ = PAIR_FUNCTIONS[profile](rows[0] + d[..., 0].reshape(-1), rows[1] + d[..., 1].reshape(-1), rows)
+    ax, ay, _ = PAIR_FUNCTIONS[profile](
+        rows[0] + d[..., 0].reshape(-1), rows[1] + d[..., 1].reshape(-1), rows
+    )
     return torch.hypot(ax, ay).reshape(*ax.shape[:2], radii.shape[0], 4).amax(-1)
 
 
-def near_tile_sums(x: Tensor, y: Tensor, table: Tensor, profile: str, inv_rc2: Tensor, mask: Tensor):
+def near_tile_sums(
+    x: Tensor, y: Tensor, table: Tensor, profile: str, inv_rc2: Tensor, mask: Tensor
+):
     """Near-field member sums ``Σ_slots mask·(1 − W_i)·(alpha_x, alpha_y, kappa)_i`` on
     tiles of points.
 

@@ -43,7 +43,6 @@ centre, so every output is finite and continuous (kappa <= 1.0e18 A for gamma = 
 
 from __future__ import annotations
 
-
 import torch
 from torch import Tensor
 
@@ -72,8 +71,10 @@ R_MIN = 1e-9
 
 def _ref(x) -> Tensor:
     if not isinstance(x, Tensor) or not torch.is_floating_point(x):
-        raise ValueError(f"x must be a floating-point torch.Tensor, got {type(x).__name__}"
-                         + (f" of dtype {x.dtype}" if isinstance(x, Tensor) else ""))
+        raise ValueError(
+            f"x must be a floating-point torch.Tensor, got {type(x).__name__}"
+            + (f" of dtype {x.dtype}" if isinstance(x, Tensor) else "")
+        )
     return x
 
 
@@ -92,8 +93,10 @@ def _check_params(gamma: Tensor, amp: Tensor, e1: Tensor, e2: Tensor) -> None:
         raise ValueError(f"amp must be >= 0 (amp = theta_E**(gamma-1)); got {bad}")
     e_sq = e1 * e1 + e2 * e2
     if not bool((e_sq < 1).all()):
-        raise ValueError("e1, e2 must satisfy e1**2 + e2**2 < 1 (axis ratio q > 0); "
-                         f"got e = {e_sq.max().sqrt().item()}")
+        raise ValueError(
+            "e1, e2 must satisfy e1**2 + e2**2 < 1 (axis ratio q > 0); "
+            f"got e = {e_sq.max().sqrt().item()}"
+        )
 
 
 def _check_knobs(n_terms, r_min) -> None:
@@ -109,7 +112,11 @@ def theta_e_to_amp(theta_e, gamma) -> Tensor:
     *Unit*: theta_e in arcsec; result in arcsec^(gamma-1). theta_e = 0 gives 0.
     """
     ref = theta_e if isinstance(theta_e, Tensor) else gamma
-    ref = ref if isinstance(ref, Tensor) else torch.as_tensor(theta_e, dtype=torch.get_default_dtype())
+    ref = (
+        ref
+        if isinstance(ref, Tensor)
+        else torch.as_tensor(theta_e, dtype=torch.get_default_dtype())
+    )
     theta_e, gamma = _as(theta_e, ref), _as(gamma, ref)
     if not bool((theta_e >= 0).all()):
         raise ValueError(f"theta_e must be >= 0 arcsec; got {theta_e.min().item()}")
@@ -134,8 +141,9 @@ def _frame(x, y, e1, e2, cx, cy):
     return q, c, s, dx, dy, X, Y
 
 
-def epl_convergence(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, r_min: float = R_MIN,
-                    validate: bool = True) -> Tensor:
+def epl_convergence(
+    x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, r_min: float = R_MIN, validate: bool = True
+) -> Tensor:
     r"""EPL convergence :math:`\kappa = \frac{3-\gamma}{2} A q^{(\gamma-1)/2} R^{1-\gamma}`.
 
     Args:
@@ -170,9 +178,20 @@ def series_coefficients(gamma: Tensor, n_terms: int) -> list[Tensor]:
     return coeffs
 
 
-def epl_deflection_and_convergence(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *,
-                                   n_terms: int = N_TERMS_DEFAULT, r_min: float = R_MIN,
-                                   validate: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+def epl_deflection_and_convergence(
+    x,
+    y,
+    amp,
+    gamma,
+    e1,
+    e2,
+    cx=0.0,
+    cy=0.0,
+    *,
+    n_terms: int = N_TERMS_DEFAULT,
+    r_min: float = R_MIN,
+    validate: bool = True,
+) -> tuple[Tensor, Tensor, Tensor]:
     r"""EPL deflection and convergence ``(alpha_x, alpha_y, kappa)`` sharing one evaluation.
 
     Deflection (arcsec) from Tessore & Metcalf (2015, eq. 13/29):
@@ -215,36 +234,67 @@ def epl_deflection_and_convergence(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *,
     return c * ax_f - s * ay_f, s * ax_f + c * ay_f, kappa
 
 
-def epl_deflection(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N_TERMS_DEFAULT,
-                   r_min: float = R_MIN, validate: bool = True) -> tuple[Tensor, Tensor]:
+def epl_deflection(
+    x,
+    y,
+    amp,
+    gamma,
+    e1,
+    e2,
+    cx=0.0,
+    cy=0.0,
+    *,
+    n_terms: int = N_TERMS_DEFAULT,
+    r_min: float = R_MIN,
+    validate: bool = True,
+) -> tuple[Tensor, Tensor]:
     """EPL deflection (alpha_x, alpha_y) in arcsec (Tessore & Metcalf 2015, eq. 13/29).
 
     See :func:`epl_deflection_and_convergence`. For a round profile
     alpha = A r^(2-gamma) r_hat.
     """
-    ax, ay, _ = epl_deflection_and_convergence(x, y, amp, gamma, e1, e2, cx, cy,
-                                               n_terms=n_terms, r_min=r_min, validate=validate)
+    ax, ay, _ = epl_deflection_and_convergence(
+        x, y, amp, gamma, e1, e2, cx, cy, n_terms=n_terms, r_min=r_min, validate=validate
+    )
     return ax, ay
 
 
-def epl_potential(x, y, amp, gamma, e1, e2, cx=0.0, cy=0.0, *, n_terms: int = N_TERMS_DEFAULT,
-                  r_min: float = R_MIN, validate: bool = True) -> Tensor:
+def epl_potential(
+    x,
+    y,
+    amp,
+    gamma,
+    e1,
+    e2,
+    cx=0.0,
+    cy=0.0,
+    *,
+    n_terms: int = N_TERMS_DEFAULT,
+    r_min: float = R_MIN,
+    validate: bool = True,
+) -> Tensor:
     """EPL lensing potential psi = (dx alpha_x + dy alpha_y)/(3 - gamma) (arcsec^2; TM15 eq. 15)."""
     x = _ref(x)
-    ax, ay = epl_deflection(x, y, amp, gamma, e1, e2, cx, cy, n_terms=n_terms, r_min=r_min,
-                           validate=validate)
+    ax, ay = epl_deflection(
+        x, y, amp, gamma, e1, e2, cx, cy, n_terms=n_terms, r_min=r_min, validate=validate
+    )
     gamma, cx, cy = _as(gamma, x), _as(cx, x), _as(cy, x)
     return ((x - cx) * ax + (y - cy) * ay) / (3 - gamma)
 
 
 def epl_convergence_theta_e(x, y, theta_e, gamma, e1, e2, cx=0.0, cy=0.0, **kwargs) -> Tensor:
-    """:func:`epl_convergence` parametrised by the Einstein radius theta_e (arcsec), for the main lens."""
-    return epl_convergence(x, y, theta_e_to_amp(_as(theta_e, _ref(x)), _as(gamma, x)), gamma,
-                           e1, e2, cx, cy, **kwargs)
+    """:func:`epl_convergence` parametrised by the Einstein radius theta_e (arcsec), for the main
+    lens."""
+    return epl_convergence(
+        x, y, theta_e_to_amp(_as(theta_e, _ref(x)), _as(gamma, x)), gamma, e1, e2, cx, cy, **kwargs
+    )
 
 
-def epl_deflection_theta_e(x, y, theta_e, gamma, e1, e2, cx=0.0, cy=0.0,
-                           **kwargs) -> tuple[Tensor, Tensor]:
-    """:func:`epl_deflection` parametrised by the Einstein radius theta_e (arcsec), for the main lens."""
-    return epl_deflection(x, y, theta_e_to_amp(_as(theta_e, _ref(x)), _as(gamma, x)), gamma,
-                          e1, e2, cx, cy, **kwargs)
+def epl_deflection_theta_e(
+    x, y, theta_e, gamma, e1, e2, cx=0.0, cy=0.0, **kwargs
+) -> tuple[Tensor, Tensor]:
+    """:func:`epl_deflection` parametrised by the Einstein radius theta_e (arcsec), for the main
+    lens."""
+    return epl_deflection(
+        x, y, theta_e_to_amp(_as(theta_e, _ref(x)), _as(gamma, x)), gamma, e1, e2, cx, cy, **kwargs
+    )

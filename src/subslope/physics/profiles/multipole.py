@@ -38,8 +38,10 @@ def _prep(x, y, m, a_m, phi_m, cx, cy, r_min):
         raise ValueError(f"m must be an int >= 2 (multipole order); got {m!r}")
     if not (isinstance(r_min, (int, float)) and r_min > 0):
         raise ValueError(f"r_min must be a float > 0 (arcsec); got {r_min!r}")
-    a_m, phi_m, cx, cy = (v if isinstance(v, Tensor) else torch.as_tensor(v, dtype=x.dtype, device=x.device)
-                          for v in (a_m, phi_m, cx, cy))
+    a_m, phi_m, cx, cy = (
+        v if isinstance(v, Tensor) else torch.as_tensor(v, dtype=x.dtype, device=x.device)
+        for v in (a_m, phi_m, cx, cy)
+    )
     dx, dy = x - cx, y - cy
     r2 = torch.clamp(dx * dx + dy * dy, min=r_min * r_min)
     inv_r = torch.rsqrt(r2)
@@ -54,8 +56,9 @@ def _prep(x, y, m, a_m, phi_m, cx, cy, r_min):
     return a_m, dx, dy, r2, inv_r, ur, ui, cos_m, sin_m
 
 
-def multipole_deflection(x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *,
-                         r_min: float = R_MIN) -> tuple[Tensor, Tensor]:
+def multipole_deflection(
+    x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *, r_min: float = R_MIN
+) -> tuple[Tensor, Tensor]:
     """Deflection (alpha_x, alpha_y) in arcsec of a circular multipole of order ``m``.
 
     Args:
@@ -76,15 +79,17 @@ def multipole_deflection(x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *,
     return ur * a_r - ui * a_t, ui * a_r + ur * a_t
 
 
-def multipole_convergence(x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *,
-                          r_min: float = R_MIN) -> Tensor:
+def multipole_convergence(
+    x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *, r_min: float = R_MIN
+) -> Tensor:
     """Convergence kappa = a_m cos(m(theta - phi_m)) / (2 r) (dimensionless)."""
     a_m, dx, dy, r2, inv_r, ur, ui, cos_m, sin_m = _prep(x, y, m, a_m, phi_m, cx, cy, r_min)
     return 0.5 * a_m * cos_m * inv_r
 
 
-def multipole_potential(x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *,
-                        r_min: float = R_MIN) -> Tensor:
+def multipole_potential(
+    x, y, m: int, a_m, phi_m, cx=0.0, cy=0.0, *, r_min: float = R_MIN
+) -> Tensor:
     """Potential psi = a_m r cos(m(theta - phi_m)) / (1 - m^2) (arcsec^2)."""
     a_m, dx, dy, r2, inv_r, ur, ui, cos_m, sin_m = _prep(x, y, m, a_m, phi_m, cx, cy, r_min)
     return a_m / (1 - m * m) * cos_m * (r2 * inv_r)

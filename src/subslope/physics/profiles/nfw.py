@@ -234,8 +234,10 @@ def nfw_params_physical(
     r_s, alpha_rs = nfw_params_from_m200_c(
         np.asarray(m200), np.asarray(c200), z_lens, z_source, cosmo
     )
-    return (torch.as_tensor(r_s, dtype=like.dtype, device=like.device),
-            torch.as_tensor(alpha_rs, dtype=like.dtype, device=like.device))
+    return (
+        torch.as_tensor(r_s, dtype=like.dtype, device=like.device),
+        torch.as_tensor(alpha_rs, dtype=like.dtype, device=like.device),
+    )
 
 
 def nfw_deflection_physical(

@@ -35,7 +35,8 @@ and for x >= 2, :math:`J = \frac{x^2}{s}\big[\pi\frac{\tau + (\tau^2+1)/(Q+s)}{\
 As tau -> infinity, I -> g and J/tau^2 -> 0, so alpha -> alpha_NFW.
 
 Convergence at large radius: the bracket of kappa cancels down to O(x^-4) from O(x^-1)
-terms, so for x > ``X_ASYMP`` * max(1, tau) (10 in float64, 3 in float32) kappa is the convergent expansion
+terms, so for x > ``X_ASYMP`` * max(1, tau) (10 in float64, 3 in float32) kappa is the convergent
+expansion
 :math:`\kappa = 2\rho_0R_s\,\frac{\tau^2}{2}\sum_n a_n x^{-4-n} w_n`, where
 :math:`\hat\rho = \tau^2 r^{-5}(1+1/r)^{-2}(1+\tau^2/r^2)^{-1} = \tau^2\sum a_n r^{-5-n}`
 and each power is projected exactly,
@@ -63,7 +64,15 @@ from subslope.physics.profiles.nfw import (
     _parts,
 )
 
-__all__ = ["X_ASYMP", "tnfw_convergence", "tnfw_deflection", "tnfw_kappa_shape", "tnfw_g_over_x2", "series_weights", "kappa_asymptotic"]
+__all__ = [
+    "X_ASYMP",
+    "tnfw_convergence",
+    "tnfw_deflection",
+    "tnfw_kappa_shape",
+    "tnfw_g_over_x2",
+    "series_weights",
+    "kappa_asymptotic",
+]
 
 #: kappa switches to the large-radius expansion beyond X_ASYMP[dtype] * max(1, tau):
 #: float64 10 (18 terms), float32 3 (24 terms; the direct form loses ~eps x^3 there).
@@ -157,9 +166,7 @@ def tnfw_kappa_shape(x2: Tensor, tau: Tensor) -> Tensor:
     t2 = tau * tau
     q = torch.sqrt(t2 + x2)
     big_l = _log_ratio(x, tau, q)
-    direct = _prefactor(tau) * (
-        (t2 + 1.0) * f + 2.0 * F - _PI / q + (t2 - 1.0) / (tau * q) * big_l
-    )
+    direct = _prefactor(tau) * ((t2 + 1.0) * f + 2.0 * F - _PI / q + (t2 - 1.0) / (tau * q) * big_l)
     f64 = x2.dtype == torch.float64
     asym = kappa_asymptotic(x2, tau, _W64 if f64 else _W32)
     big = X_ASYMP[torch.float64 if f64 else torch.float32] * torch.clamp(tau, min=1.0)
