@@ -21,6 +21,7 @@ from subslope.physics.pairs import sums as PK
 from subslope.physics.profiles.epl import R_MIN, epl_deflection
 from subslope.render import nearfar as NF
 from subslope.render import populations
+from subslope.render import tiles as TL
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
@@ -101,7 +102,7 @@ def test_near_pairs_match_brute_force():
     u = torch.tensor(rng.uniform(-10, 60, (b, n)), dtype=F64)
     radius = torch.tensor(rng.uniform(0.5, 20, (b, n)), dtype=F64)
     live = torch.tensor(rng.uniform(size=(b, n)) < 0.8)
-    tiles, mem = NF.near_pairs(v, u, radius, live, nt, tile)
+    tiles, mem = TL.near_pairs(v, u, radius, live, nt, tile)
     got = set(zip(tiles.tolist(), mem.tolist()))
     want = set()
     for k in range(b):

@@ -30,7 +30,8 @@ from subslope.physics.instrument import noise_sigma_map
 from subslope.physics.pairs.sums import direct_sums, far_sums, member_table, near_tile_sums
 from subslope.render import counters
 from subslope.render import pipeline as R
-from subslope.render.nearfar import GridBlock, interpolation_matrix, node_indices, split_pass
+from subslope.render.nearfar import interpolation_matrix, node_indices, split_pass
+from subslope.render.tiles import GridBlock
 from subslope.simulation.los import LosPopulation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -285,13 +286,7 @@ def test_single_member_error_within_tolerance(i):
     assert err <= DEF_TOL, (ERROR_MEMBERS[i], err)
 
 
-@pytest.mark.parametrize(
-    "contraction",
-    [
-        0.1,
-        0.2,
-    ],
-)
+@pytest.mark.parametrize("contraction", [0.1, 0.2])
 def test_single_member_error_with_distorted_rays(contraction):
     """Rays contracted uniformly (displacement gradient 0.1 / 0.2 per grid step, below the
     0.25 fallback), renderer defaults: a massive member's error stays within tolerance."""
@@ -487,16 +482,7 @@ def test_settings_accept_valid_split_values():
 
 
 # --------------------------------------------------------------- 7. render-level agreement
-@pytest.mark.parametrize(
-    "seed,supersample",
-    [
-        (31, 1),
-        (31, 2),
-        (106, 1),
-        (103, 1),
-        (102, 1),
-    ],
-)
+@pytest.mark.parametrize("seed,supersample", [(31, 1), (31, 2), (106, 1), (103, 1), (102, 1)])
 def test_render_split_matches_direct(seed, supersample):
     """Small train-like scene (200 subhalos on the arc, 5 LoS halos): split vs direct
     (float64, eager) agree to 0.05 σ_noise per pixel (half the image budget of

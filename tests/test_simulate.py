@@ -13,6 +13,7 @@ from subslope import config as cfgmod
 from subslope.io import shards
 from subslope.physics import concentration, cosmology
 from subslope.simulation import los as losmod
+from subslope.simulation import rerender
 from subslope.simulation import shard as simulate
 from subslope.simulation.macro import sample_macro
 from subslope.simulation.scenes import Scene
@@ -87,14 +88,14 @@ def test_rerender_bit_for_bit(config, train_shard):
         stored = s.images[()]
         seeds = s.params["noise_seed"]
     for i in range(stored.shape[0]):
-        np.testing.assert_array_equal(simulate.rerender(train_shard, i), stored[i])
+        np.testing.assert_array_equal(rerender.rerender(train_shard, i), stored[i])
     # noise-free: the same clean image as the simulator's own noise-free path
     ss = simulate.shard_seed_sequence(config["seed"], "train", 0)
     clean = simulate.simulate_images(config, "train", 3, ss, noise=False)
     np.testing.assert_array_equal(clean["params"]["noise_seed"], seeds)
     for i in range(3):
         np.testing.assert_array_equal(
-            simulate.rerender(train_shard, i, noise=False), clean["images"][i]
+            rerender.rerender(train_shard, i, noise=False), clean["images"][i]
         )
     assert not np.array_equal(clean["images"][0], stored[0])
 
@@ -121,7 +122,7 @@ def test_cdm_shards(config, scene, tmp_path):
         assert ("r_t" in s.subhalos) == (scene == "tnfw")
         assert "c200" in s.los and "amp" not in s.los
         assert s.attrs["multiplier"] == 1.0 and s.attrs["seed_spawn_key"][2] == 0
-    np.testing.assert_array_equal(simulate.rerender(path, 1), shards.open_shard(path).images[1])
+    np.testing.assert_array_equal(rerender.rerender(path, 1), shards.open_shard(path).images[1])
 
 
 def test_shard_jobs_and_paths(config):

@@ -326,7 +326,7 @@ def tiny_run(workdir):
 @pytest.mark.slow
 def test_real_run_tiny_simulation(tiny_run, workdir):
     from subslope.io import shards
-    from subslope.simulation import shard as simulate
+    from subslope.simulation import rerender
 
     results = tiny_run
     paths = sorted((results / "simulate_shard").rglob("*.h5"))
@@ -345,7 +345,7 @@ def test_real_run_tiny_simulation(tiny_run, workdir):
     # the workflow's shard equals the package's (same config, same seed streams)
     with shards.open_shard(results / "simulate_shard" / "train" / "shard_1.h5") as s:
         np.testing.assert_array_equal(
-            simulate.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"), s.images[2]
+            rerender.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"), s.images[2]
         )
     white = json.loads((results / "compute_whitening" / "whitening.json").read_text())
     assert white["n_images"] == 6 and white["std"] > 0 and len(white["shards"]) == 2

@@ -216,8 +216,7 @@ def _analyze_hst(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="subslope",
-        description="Subhalo effective density slope from strong-lensing images.",
+        prog="subslope", description="Subhalo effective density slope from strong-lensing images."
     )
     parser.add_argument("--version", action="version", version=f"subslope {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

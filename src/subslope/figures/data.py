@@ -196,13 +196,13 @@ def plot_scene_examples_from_shard(
     """Scene-example figure of the first ``n`` images of a shard; returns their indices.
 
     The arc masks are recomputed from the stored parameters with
-    :func:`subslope.simulation.shard.smooth_models` (nothing is re-sampled). Titles give the
+    :func:`subslope.simulation.rerender.smooth_models` (nothing is re-sampled). Titles give the
     label γ (or the concentration multiplier a of CDM scenes), N_sub and N_LoS. With
     ``stiff_cases=True`` two panels of docs/simulation.md's stiff cases are appended
     (:func:`stiff_case_panels` with the shard's PSF: N_sub = 1500 at γ = 2.5 and 1.2).
     """
     from subslope.io.shards import open_shard
-    from subslope.simulation.shard import smooth_models
+    from subslope.simulation.rerender import smooth_models
 
     with open_shard(shard_path) as shard:
         k = min(int(n), len(shard))

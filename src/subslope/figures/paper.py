@@ -490,6 +490,14 @@ def coverage_figure(
     lv = np.asarray(levels, dtype=np.float64)
     fig = Figure(figsize=(9.0, 4.2))
     ax1, ax2 = fig.subplots(1, 2)
+    _coverage_panel(ax1, table, level)
+    _curves_panel(ax2, lv, coverages_empirical, coverages_wilks, level)
+    footer(fig, run_name, source)
+    return _finish(fig, "Calibration of the test-statistic threshold on held-out stacks")
+
+
+def _coverage_panel(ax1, table, level: float) -> None:
+    """Held-out coverage per N at ``level``, calibrated and Wilks thresholds."""
     n = table["n_images"].to_numpy()
     ax1.axhline(level, color="0.4", ls="--", lw=1, label=f"target {level:.0%}")
     ax1.errorbar(
@@ -531,6 +539,9 @@ def coverage_figure(
     ax1.grid(alpha=0.25)
     ax1.legend(fontsize=7, frameon=False, loc="upper right")
 
+
+def _curves_panel(ax2, lv, coverages_empirical, coverages_wilks, level: float) -> None:
+    """Expected coverage against credibility level, one curve per N."""
     ax2.plot([0, 1], [0, 1], color="0.4", ls="--", lw=1, label="ideal")
     emp = (
         coverages_empirical
@@ -558,5 +569,3 @@ def coverage_figure(
     ax2.set_ylabel("held-out coverage")
     ax2.grid(alpha=0.25)
     ax2.legend(fontsize=6.5, frameon=False, loc="upper left")
-    footer(fig, run_name, source)
-    return _finish(fig, "Calibration of the test-statistic threshold on held-out stacks")

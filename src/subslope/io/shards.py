@@ -24,8 +24,8 @@ sections), ``seed_entropy`` and ``seed_spawn_key`` (the numpy SeedSequence of th
 shard), ``package_version``, ``n_images``, ``render_settings`` (JSON),
 ``subhalo_profile`` / ``los_profile`` and, written last, ``complete = True``.
 
-Writing is atomic: the file is built as ``<path>.tmp-<pid>`` and renamed with
-:func:`os.replace`; an existing shard is never overwritten unless asked. No time stamps
+Writing is atomic (:func:`subslope.io.atomic.atomic_write`: a temporary file beside the
+shard, renamed once complete); an existing shard is never overwritten unless asked. No time stamps
 are stored (``track_times=False``), so the same inputs give a byte-identical file.
 :func:`open_shard` checks format, version, completeness and the required datasets and
 raises :class:`ShardError` naming the file otherwise.
@@ -44,6 +44,7 @@ import h5py
 import numpy as np
 
 from subslope.config import canonical_json, config_hash
+from subslope.io.atomic import atomic_write
 
 __all__ = [
     "FORMAT_NAME",
@@ -142,6 +143,42 @@ def write_shard(
     if images.ndim != 3:
         raise ShardError(f"{path}: images must have shape (N, H, W), got {images.shape}")
     n, h, w = images.shape
+    _check_arrays(path, n, params, sources, subhalos, los)
+
+    comp: dict[str, Any] = {}
+    if compression == "gzip":
+        comp = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+    elif compression == "lzf":
+        comp = {"compression": "lzf", "shuffle": True}
+    elif compression is not None:
+        raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+
+    with atomic_write(path) as tmp, h5py.File(tmp, "w", track_order=False) as f:
+        chunks = (1, h, w) if n else None
+        f.create_dataset(
+            "images", data=images, chunks=chunks, track_times=False, **(comp if n else {})
+        )
+        _dataset(f, "psf", np.asarray(psf, dtype=np.float64))
+        for group, arrays in (
+            ("params", params),
+            ("sources", sources or {}),
+            ("subhalos", subhalos),
+            ("los", los),
+        ):
+            g = f.create_group(group, track_order=False)
+            for key in sorted(arrays):
+                _dataset(g, key, arrays[key])
+        meta = dict(attrs)
+        meta.update(format=FORMAT_NAME, format_version=FORMAT_VERSION, n_images=n)
+        for key in sorted(meta):
+            f.attrs[key] = _attr_value(meta[key])
+        f.attrs["complete"] = True  # last: marks a finished file
+    return path
+
+
+def _check_arrays(path, n: int, params, sources, subhalos, los) -> None:
+    """Shapes of a shard's arrays: per-image groups ``(n,)``, populations flat with ``(n,)``
+    counts, every required parameter present."""
     for group, arrays, per_image in (("params", params, True), ("sources", sources or {}, True)):
         for key, value in arrays.items():
             if per_image and np.shape(value) != (n,):
@@ -163,43 +200,6 @@ def write_shard(
     ]
     if missing:
         raise ShardError(f"{path}: missing required parameter(s) {missing}")
-
-    comp: dict[str, Any] = {}
-    if compression == "gzip":
-        comp = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
-    elif compression == "lzf":
-        comp = {"compression": "lzf", "shuffle": True}
-    elif compression is not None:
-        raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w", track_order=False) as f:
-            chunks = (1, h, w) if n else None
-            f.create_dataset(
-                "images", data=images, chunks=chunks, track_times=False, **(comp if n else {})
-            )
-            _dataset(f, "psf", np.asarray(psf, dtype=np.float64))
-            for group, arrays in (
-                ("params", params),
-                ("sources", sources or {}),
-                ("subhalos", subhalos),
-                ("los", los),
-            ):
-                g = f.create_group(group, track_order=False)
-                for key in sorted(arrays):
-                    _dataset(g, key, arrays[key])
-            meta = dict(attrs)
-            meta.update(format=FORMAT_NAME, format_version=FORMAT_VERSION, n_images=n)
-            for key in sorted(meta):
-                f.attrs[key] = _attr_value(meta[key])
-            f.attrs["complete"] = True  # last: marks a finished file
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 class Shard:

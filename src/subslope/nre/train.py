@@ -48,6 +48,7 @@ import torch
 from tqdm.auto import tqdm
 
 from subslope.devices import pick_device
+from subslope.io.atomic import atomic_write
 
 from .data import ShardBatches, make_loader, read_labels
 from .loss import NRELoss
@@ -101,21 +102,16 @@ def _set_rng_state(state: Mapping[str, Any]) -> None:
 
 
 def _atomic_save(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_write(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def _write_log(history: Sequence[Mapping[str, Any]], path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_write(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=LOG_COLUMNS)
         w.writeheader()
         for row in history:
             w.writerow({k: row[k] for k in LOG_COLUMNS})
-    os.replace(tmp, path)
 
 
 @torch.no_grad()

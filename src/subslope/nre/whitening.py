@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from subslope.io.atomic import write_json
 from subslope.io.shards import file_sha256, open_shard
 
 __all__ = ["Moments", "pixel_statistics", "compute_whitening", "load_whitening"]
@@ -117,11 +118,7 @@ def compute_whitening(
         "n_images": n_images,
         "shards": shards,
     }
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f"{out_path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(result, indent=2) + "\n")
-    os.replace(tmp, out_path)
+    write_json(Path(out_path), result)
     return result
 
 

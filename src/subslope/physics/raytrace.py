@@ -250,6 +250,13 @@ def plane_geometry(
                 "z < z_source (use beyond_source='skip' or active masks to drop them)"
             )
         act &= ~behind
+    return _recursion_factors(zp_arr, act, zs, zc, cosmo, z_convention is not None)
+
+
+def _recursion_factors(zp_arr, act, zs, zc, cosmo, with_source: bool) -> PlaneGeometry:
+    """The comoving recursion's factors per plane and system (planes ``(n, B)``, active
+    masks, source and convention redshifts ``(B,)``)."""
+    n, nb = zp_arr.shape
     chi = comoving_distance(zp_arr, cosmo) if n else zp_arr
     chi_s = comoving_distance(zs, cosmo)
     chi_c = comoving_distance(zc, cosmo)
@@ -273,7 +280,7 @@ def plane_geometry(
         chi_p = np.where(a, chi[j], chi_p)
         z_p = np.where(a, zp_arr[j], z_p)
     to_source = None
-    if z_convention is not None:
+    if with_source:
         to_source = np.where(act, (chi_s[None] - chi) / chi_s[None] * to_phys, 0.0)
     return PlaneGeometry(c_prev, c_dir, to_phys, to_source, act)
 
@@ -306,15 +313,14 @@ def multi_plane_ray_shoot(
         deflections (default: ``z_source``, lenstronomy's ``z_source_convention``).
     beyond_source : ``"raise"`` (default) or ``"skip"`` planes with ``z >= z_source``.
 
-    Every plane is evaluated once, in one front-to-back sweep.  Distance factors are
-    ``(B, 1)`` tensors (``(1, 1)`` when shared) in ``x``'s dtype and device.
+    Every plane is evaluated once, in one front-to-back sweep; distance factors are
+    ``(B, 1)`` tensors in ``x``'s dtype and device.
     """
     planes = list(planes)
-    for j, p in enumerate(planes):
-        if not isinstance(p, Plane):
-            raise ValueError(
-                f"planes[{j}] must be a subslope.physics.raytrace.Plane, got {type(p).__name__}"
-            )
+    bad = [type(p).__name__ for p in planes if not isinstance(p, Plane)]
+    if bad:
+        j = next(j for j, p in enumerate(planes) if not isinstance(p, Plane))
+        raise ValueError(f"planes[{j}] must be a subslope.physics.raytrace.Plane, got {bad[0]}")
     if all(_is_scalar(p.z) for p in planes):
         planes = sorted(planes, key=lambda p: float(p.z))
     geom = plane_geometry(

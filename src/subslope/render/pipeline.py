@@ -65,7 +65,6 @@ from subslope.physics.raytrace import Plane, multi_plane_ray_shoot
 from subslope.ragged import pack_ragged
 from subslope.render.counters import count_step
 from subslope.render.kernels import Kernels, kernels_for
-from subslope.render.nearfar import GridBlock
 from subslope.render.populations import (
     PROFILE_KEYS,
     Geometry,
@@ -77,6 +76,7 @@ from subslope.render.populations import (
     select_systems,
 )
 from subslope.render.settings import PixelatedSources, RenderSettings, chunk_width
+from subslope.render.tiles import GridBlock
 
 __all__ = ["RenderSettings", "PixelatedSources", "render_smooth", "render"]
 

@@ -21,8 +21,9 @@ from subslope.physics.pairs.sums import member_table
 from subslope.ragged import counts_to_offsets, pack_ragged
 from subslope.render.counters import count_step
 from subslope.render.kernels import FEW_MEMBERS, Kernels
-from subslope.render.nearfar import GridBlock, split_pass
+from subslope.render.nearfar import split_pass
 from subslope.render.settings import RenderSettings, chunk_width
+from subslope.render.tiles import GridBlock
 
 __all__ = [
     "PAD_VALUES",

@@ -184,13 +184,7 @@ def expected_counts(
     counts = delta_los * n_int * slice_volumes(z_lens, z_source, config)
     if config.two_halo:
         counts = counts * two_halo_boost(
-            z_lo,
-            z_lens,
-            host_m200,
-            config.dz,
-            config.r_min,
-            config.r_max,
-            config.n_two_halo_quad,
+            z_lo, z_lens, host_m200, config.dz, config.r_min, config.r_max, config.n_two_halo_quad
         )
     return counts
 

@@ -190,11 +190,7 @@ def slice_redshifts(
 
 
 def cone_radius_arcsec(
-    z,
-    z_lens: float,
-    z_source: float,
-    cone_diameter: float = 4.0,
-    opening_factor: float = 0.8,
+    z, z_lens: float, z_source: float, cone_diameter: float = 4.0, opening_factor: float = 0.8
 ) -> np.ndarray:
     """Angular radius [arcsec] of the LoS double cone at redshift ``z``.
 

@@ -4,14 +4,9 @@ A *scene* is everything needed to draw the parameters of one family of simulated
 which components are on, the prior of every parameter of Table 1 of the reference paper
 (docs/simulation.md), the subhalo and line-of-sight (LoS) models, the source kind and how
 many images share one label γ (``images_per_set``). Scenes are declared in the config
-under ``scenes.<name>``; each entry is merged key by key onto a *preset*:
-
-- ``train``: the paper's training scene (N_sub ~ U{0, 3000}, COSMOS training sources);
-- ``validation``: as ``train`` but N_sub ~ U{0, 1800} and validation sources;
-- ``test_epl``: as ``validation`` with test sources and sets of 13 images sharing γ;
-- ``nfw`` / ``tnfw``: the CDM test sets: NFW / truncated-NFW subhalos placed everywhere,
-  NFW LoS halos, concentration = a × c_CDM(M, z) × 10^N(0, 0.1 dex), sets of 13 images;
-- any other name starts from the ``train`` preset.
+under ``scenes.<name>``; each entry is merged key by key onto a *preset* of
+``schemas/scene_presets.yaml`` (``train``, ``validation``, ``test_epl``, ``nfw``,
+``tnfw``; any other name starts from the paper's training scene).
 
 A prior entry (a mapping with ``dist``) replaces the preset's prior as a whole; every
 other mapping is merged key by key. Unknown keys raise :class:`SceneError` naming the

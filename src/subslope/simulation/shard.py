@@ -68,9 +68,6 @@ __all__ = [
     "source_split",
     "simulate_images",
     "simulate_shard",
-    "stored_inputs",
-    "rerender",
-    "smooth_models",
 ]
 
 log = logging.getLogger(__name__)
@@ -352,6 +349,56 @@ def _draw_populations(
     return subs, lpop
 
 
+@dataclasses.dataclass
+class _Job:
+    """The state of one in-memory simulation of ``n`` images of a scene."""
+
+    sc: Any
+    macro: dict[str, np.ndarray]
+    settings: Any
+    psf: torch.Tensor
+    inst: Instrument
+    sources: dict[str, np.ndarray]
+    stamps: list[np.ndarray]
+    pad_shape: tuple[int, int] | None
+    draws: _Draws
+    noise_seed: np.ndarray | None
+    images: np.ndarray
+    timing: dict[str, float]
+    sub_pops: list = dataclasses.field(default_factory=list)
+    los_pops: list = dataclasses.field(default_factory=list)
+
+
+def _simulate_batch(job: _Job, sl: slice) -> None:
+    """Images ``sl``: smooth models for the arc placement, populations, render, noise."""
+    from subslope.render.pipeline import render, render_smooth
+
+    sc, settings, timing = job.sc, job.settings, job.timing
+    idx = range(sl.start, sl.stop)
+    m_b = {k: v[sl] for k, v in job.macro.items()}
+    src_b = None
+    if job.stamps:
+        src_b = _pixelated_sources(
+            job.stamps[sl], job.sources["pixel_scale"][sl], job.pad_shape, settings
+        )
+    t = time.perf_counter()
+    smooth = None
+    if sc.components.subhalos and sc.subhalos.placement == "arc" and np.any(m_b["n_sub"] > 0):
+        smooth = render_smooth(m_b, job.psf, settings, sources=src_b).detach().cpu().numpy()
+    timing["smooth"] += time.perf_counter() - t
+    t = time.perf_counter()
+    subs, lpop = _draw_populations(sc, job.macro, idx, smooth, job.draws)
+    job.sub_pops += [subs] if subs is not None else []
+    job.los_pops += [lpop] if lpop is not None else []
+    timing["sampling"] += time.perf_counter() - t
+    t = time.perf_counter()
+    clean = render(m_b, job.psf, settings, sources=src_b, subhalos=subs, los=lpop)
+    timing["render"] += time.perf_counter() - t
+    t = time.perf_counter()
+    _observe(job.images, clean, idx, job.noise_seed, job.inst)
+    timing["noise"] += time.perf_counter() - t
+
+
 def simulate_images(
     config: Mapping[str, Any],
     scene: str,
@@ -368,8 +415,6 @@ def simulate_images(
     parameters + ``noise_seed``), ``sources``, ``subhalos``, ``los`` (flat arrays +
     ``counts``), ``psf``, ``settings`` (RenderSettings), ``timings`` (s) and profiles.
     """
-    from subslope.render.pipeline import render, render_smooth
-
     config = _config.validate(config)
     sc, _ = resolved_scene(config, scene)
     streams = dict(zip(STREAMS, seed_sequence.spawn(len(STREAMS))))
@@ -381,76 +426,52 @@ def simulate_images(
     psf64 = build_psf(config)
     psf = torch.as_tensor(psf64, dtype=settings.dtype, device=settings.device)
     inst = build_instrument(config)
-    sources, stamps, pad_shape = _draw_sources(
-        config,
-        sc,
-        macro,
-        np.random.default_rng(streams["sources"]),
-        float(config["instrument"]["zero_point"]),
-    )
-    timing = {
-        "setup": time.perf_counter() - t0,
-        "smooth": 0.0,
-        "sampling": 0.0,
-        "render": 0.0,
-        "noise": 0.0,
-    }
-
+    zero_point = float(config["instrument"]["zero_point"])
+    src_rng = np.random.default_rng(streams["sources"])
+    sources, stamps, pad_shape = _draw_sources(config, sc, macro, src_rng, zero_point)
+    timing = dict.fromkeys(("setup", "smooth", "sampling", "render", "noise"), 0.0)
+    timing["setup"] = time.perf_counter() - t0
+    inst_cfg = config["instrument"]
+    los_config = LosConfig(m_min=sc.los.m_min, m_max=sc.los.m_max)
+    sub_streams, los_streams = streams["subhalos"].spawn(n), streams["los"].spawn(n)
     draws = _Draws(
-        streams["subhalos"].spawn(n),
-        streams["los"].spawn(n),
-        LosConfig(m_min=sc.los.m_min, m_max=sc.los.m_max),
-        int(config["instrument"]["npix"]),
-        float(config["instrument"]["pixel_scale"]),
+        sub_streams, los_streams, los_config, int(inst_cfg["npix"]), float(inst_cfg["pixel_scale"])
     )
     noise_seed = streams["noise"].generate_state(n, dtype=np.uint64)
-    comp = sc.components
-    bs = int(config["simulation"]["render"]["batch_size"])
     images = np.empty((n, draws.npix, draws.npix), dtype=np.float32)
-    sub_pops: list[SubhaloPopulation] = []
-    los_pops: list[LosPopulation] = []
+    job = _Job(
+        sc,
+        macro,
+        settings,
+        psf,
+        inst,
+        sources,
+        stamps,
+        pad_shape,
+        draws,
+        noise_seed if noise else None,
+        images,
+        timing,
+    )
+    bs = int(config["simulation"]["render"]["batch_size"])
     bar = _progress_bar(n, scene) if progress else None
     for start in range(0, n, bs):
-        sl = slice(start, min(start + bs, n))
-        idx = range(sl.start, sl.stop)
-        m_b = {k: v[sl] for k, v in macro.items()}
-        src_b = (
-            _pixelated_sources(stamps[sl], sources["pixel_scale"][sl], pad_shape, settings)
-            if stamps
-            else None
-        )
-
-        t = time.perf_counter()
-        smooth = None
-        if comp.subhalos and sc.subhalos.placement == "arc" and np.any(m_b["n_sub"] > 0):
-            smooth = render_smooth(m_b, psf, settings, sources=src_b).detach().cpu().numpy()
-        timing["smooth"] += time.perf_counter() - t
-        t = time.perf_counter()
-        subs, lpop = _draw_populations(sc, macro, idx, smooth, draws)
-        sub_pops += [subs] if subs is not None else []
-        los_pops += [lpop] if lpop is not None else []
-        timing["sampling"] += time.perf_counter() - t
-        t = time.perf_counter()
-        clean = render(m_b, psf, settings, sources=src_b, subhalos=subs, los=lpop)
-        timing["render"] += time.perf_counter() - t
-        t = time.perf_counter()
-        _observe(images, clean, idx, noise_seed if noise else None, inst)
-        timing["noise"] += time.perf_counter() - t
+        _simulate_batch(job, slice(start, min(start + bs, n)))
         if bar is not None:
-            bar.update(sl.stop - sl.start)
+            bar.update(min(start + bs, n) - start)
     if bar is not None:
         bar.close()
-
     params = dict(macro)
     params["noise_seed"] = noise_seed
+    comp = sc.components
     empty = {"counts": np.zeros(n, dtype=np.int64)}
     timing["total"] = time.perf_counter() - t0
     return {
         "images": images,
         "params": params,
         "sources": sources,
-        "subhalos": _pop_arrays(_concat_subhalos(sub_pops)) if comp.subhalos else empty,
-        "los": _pop_arrays(_concat_los(los_pops)) if comp.los else dict(empty),
+        "subhalos": _pop_arrays(_concat_subhalos(job.sub_pops)) if comp.subhalos else empty,
+        "los": _pop_arrays(_concat_los(job.los_pops)) if comp.los else dict(empty),
         "psf": psf64,
         "settings": settings,
         "timings": timing,
@@ -498,46 +519,10 @@ def simulate_shard(
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
-    counts = config["simulation"]["scenes"].get(scene)
-    if counts is None:
-        raise ValueError(
-            f"scene {scene!r} has no entry in simulation.scenes (known: "
-            f"{sorted(config['simulation']['scenes'])})"
-        )
-    sc, spec = resolved_scene(config, scene)
-    n = int(counts["images_per_shard"])
-    if not 0 <= int(shard) < int(counts["n_shards"]):
-        raise ValueError(
-            f"shard = {shard} must be in [0, {counts['n_shards']}) "
-            f"(simulation.scenes.{scene}.n_shards)"
-        )
-    mults = scene_multipliers(config, sc)
-    m_index = None
-    if mults is not None:
-        if multiplier is None:
-            raise ValueError(
-                f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}"
-            )
-        matches = [
-            k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)
-        ]
-        if not matches:
-            raise ValueError(
-                f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}"
-            )
-        m_index, multiplier = matches[0], mults[matches[0]]
-    elif multiplier is not None:
-        raise ValueError(f"scene {scene!r} has no NFW/tNFW component: multiplier must be None")
-
+    n, spec, m_index, multiplier = _shard_request(config, scene, shard, multiplier)
     ss = shard_seed_sequence(config["seed"], scene, shard, m_index)
-    log.info(
-        "simulating %s shard %d%s: %d images -> %s",
-        scene,
-        shard,
-        "" if multiplier is None else f" (a = {multiplier:g})",
-        n,
-        out_path,
-    )
+    label = "" if multiplier is None else f" (a = {multiplier:g})"
+    log.info("simulating %s shard %d%s: %d images -> %s", scene, shard, label, n, out_path)
     out = simulate_images(config, scene, n, ss, multiplier=multiplier, progress=progress)
     sections = simulation_sections(config, scene)
     attrs = {
@@ -557,16 +542,9 @@ def simulate_shard(
         "source_pad_shape": list(out["pad_shape"]) if out["pad_shape"] else [],
     }
     t = time.perf_counter()
+    arrays = {k: out[k] for k in ("images", "params", "psf", "subhalos", "los")}
     path = _shards.write_shard(
-        out_path,
-        images=out["images"],
-        params=out["params"],
-        psf=out["psf"],
-        subhalos=out["subhalos"],
-        los=out["los"],
-        sources=out["sources"] or None,
-        attrs=attrs,
-        overwrite=overwrite,
+        out_path, **arrays, sources=out["sources"] or None, attrs=attrs, overwrite=overwrite
     )
     tm = out["timings"]
     tm["write"] = time.perf_counter() - t
@@ -581,96 +559,31 @@ def simulate_shard(
     return path
 
 
-# ------------------------------------------------------------------------- from a shard
-def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) -> dict[str, Any]:
-    """Renderer inputs of the images ``indices`` of an open shard, from stored values only.
-
-    ``cosmos``: COSMOS folder overriding the shard's ``cosmos_folder`` attribute.
-    Returns ``macro``, ``sources`` (PixelatedSources or None), ``subhalos``, ``los``,
-    ``psf`` (tensor), ``settings``, ``noise_seed``, ``instrument``.
-    """
-    a = shard.attrs
-    settings = settings or _settings_from_json(a["render_settings"])
-    idx = np.atleast_1d(np.arange(len(shard))[indices])
-    macro = {k: v[idx] for k, v in shard.params.items() if k != "noise_seed"}
-    cfg = a["config"]
-    zp = float(cfg["instrument"]["zero_point"])
-    src = None
-    if shard.sources:
-        s = shard.sources
-        catalog = _catalog(str(cosmos if cosmos is not None else a["cosmos_folder"]))
-        stamps, pixs = [], []
-        for i in idx:
-            z_s = shard.params["z_source"][i]
-            sb, pix, _ = _place(
-                catalog, s["ident"][i], z_s, zp, s["mag"][i] if "mag" in s else None
-            )
-            if not np.isclose(pix, s["pixel_scale"][i], rtol=1e-12):
-                raise _shards.ShardError(
-                    f"{shard.path}: COSMOS galaxy {s['ident'][i]} at z = {z_s} "
-                    "does not reproduce the stored pixel scale (different catalogue?)"
-                )
-            stamps.append(sb)
-            pixs.append(s["pixel_scale"][i])
-        src = _pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
-    subs = None
-    if a["subhalo_profile"] != "none":
-        subs = SubhaloPopulation(profile=a["subhalo_profile"], **shard.ragged("subhalos", idx))
-    lpop = None
-    if a["los_profile"] != "none":
-        lpop = LosPopulation(profile=a["los_profile"], **shard.ragged("los", idx))
-    psf = torch.as_tensor(shard.psf, dtype=settings.dtype, device=settings.device)
-    inst = build_instrument(cfg)
-    return {
-        "macro": macro,
-        "sources": src,
-        "subhalos": subs,
-        "los": lpop,
-        "psf": psf,
-        "settings": settings,
-        "noise_seed": shard.params["noise_seed"][idx],
-        "instrument": inst,
-    }
-
-
-def rerender(
-    shard_path: str | os.PathLike[str], i: int, *, noise: bool = True, cosmos=None
-) -> np.ndarray:
-    """Image ``i`` of a shard re-rendered from its stored parameters (nothing re-sampled).
-
-    With ``noise=True`` the stored noise seed is used: on the same device and dtype the
-    result equals the stored image bit for bit. ``noise=False`` gives the noise-free image.
-    """
-    from subslope.render.pipeline import render
-
-    with _shards.open_shard(shard_path) as shard:
-        if not 0 <= int(i) < len(shard):
-            raise IndexError(
-                f"image index {i} out of range for {shard_path} with {len(shard)} images"
-            )
-        inp = stored_inputs(shard, [int(i)], cosmos=cosmos)
-    clean = render(
-        inp["macro"],
-        inp["psf"],
-        inp["settings"],
-        sources=inp["sources"],
-        subhalos=inp["subhalos"],
-        los=inp["los"],
-    )[0]
-    img = (
-        add_noise(clean, int(inp["noise_seed"][0]), instrument=inp["instrument"])
-        if noise
-        else clean
-    )
-    return img.detach().cpu().numpy().astype(np.float32)
-
-
-def smooth_models(shard_path: str | os.PathLike[str], indices, *, cosmos=None) -> np.ndarray:
-    """Noise-free smooth models (main lens + shear + multipoles + source, no lens light or
-    substructure) of images ``indices``, from stored parameters: (k, H, W) float64."""
-    from subslope.render.pipeline import render_smooth
-
-    with _shards.open_shard(shard_path) as shard:
-        inp = stored_inputs(shard, indices, cosmos=cosmos)
-    out = render_smooth(inp["macro"], inp["psf"], inp["settings"], sources=inp["sources"])
-    return out.detach().cpu().numpy().astype(np.float64)
+def _shard_request(config: Mapping[str, Any], scene: str, shard: int, multiplier: float | None):
+    """Check a shard request against the config: ``(images in the shard, scene spec,
+    multiplier index or None, multiplier as listed or None)``."""
+    counts = config["simulation"]["scenes"].get(scene)
+    if counts is None:
+        raise ValueError(
+            f"scene {scene!r} has no entry in simulation.scenes (known: "
+            f"{sorted(config['simulation']['scenes'])})"
+        )
+    sc, spec = resolved_scene(config, scene)
+    if not 0 <= int(shard) < int(counts["n_shards"]):
+        raise ValueError(
+            f"shard = {shard} must be in [0, {counts['n_shards']}) "
+            f"(simulation.scenes.{scene}.n_shards)"
+        )
+    mults = scene_multipliers(config, sc)
+    if mults is None:
+        if multiplier is not None:
+            raise ValueError(f"scene {scene!r} has no NFW/tNFW component: multiplier must be None")
+        return int(counts["images_per_shard"]), spec, None, None
+    if multiplier is None:
+        raise ValueError(f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}")
+    matches = [k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)]
+    if not matches:
+        raise ValueError(
+            f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}"
+        )
+    return int(counts["images_per_shard"]), spec, matches[0], mults[matches[0]]

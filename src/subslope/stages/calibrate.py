@@ -48,6 +48,42 @@ def safe_threshold(t, level: float) -> tuple[float, bool]:
         return float(calibration.threshold(t, level)), True
 
 
+def _heldout_coverage(
+    t_cal: np.ndarray, t_held: np.ndarray, tau_cal: float, tau_w: float, levels: np.ndarray
+) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+    """Coverage of the held-out stacks at the calibrated and at Wilks' threshold, with
+    binomial errors and the Wilson interval, and the expected-coverage curves over
+    ``levels`` (thresholds from the calibration stacks); NaN without held-out stacks."""
+    nan = float("nan")
+    cov = dict(
+        coverage=nan,
+        coverage_err=nan,
+        wilson_lo=nan,
+        wilson_hi=nan,
+        coverage_wilks=nan,
+        coverage_wilks_err=nan,
+    )
+    curve = np.full(levels.size, np.nan)
+    curve_w = np.full(levels.size, np.nan)
+    if not t_held.size:
+        return cov, curve, curve_w
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", calibration.FewSamplesWarning)
+        p, err, (wlo, whi) = calibration.coverage(t_held, tau_cal)
+        pw, errw, _ = calibration.coverage(t_held, tau_w)
+        _, curve_w = calibration.wilks_coverage(t_held, levels)
+        curve = np.array([np.mean(t_held <= safe_threshold(t_cal, a)[0]) for a in levels])
+    cov = dict(
+        coverage=p,
+        coverage_err=err,
+        wilson_lo=wlo,
+        wilson_hi=whi,
+        coverage_wilks=pw,
+        coverage_wilks_err=errw,
+    )
+    return cov, curve, curve_w
+
+
 def calibrate_stack_size(
     profile_paths,
     n: int,
@@ -92,31 +128,7 @@ def calibrate_stack_size(
         is_cal = np.ones(len(stacks), dtype=bool)
     t_cal, t_held = t_true[is_cal], t_true[~is_cal]
     tau_cal, _ = safe_threshold(t_cal, level)
-    cov = dict(
-        coverage=np.nan,
-        coverage_err=np.nan,
-        wilson_lo=np.nan,
-        wilson_hi=np.nan,
-        coverage_wilks=np.nan,
-        coverage_wilks_err=np.nan,
-    )
-    curve = np.full(lv.size, np.nan)
-    curve_w = np.full(lv.size, np.nan)
-    if t_held.size:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", calibration.FewSamplesWarning)
-            p, err, (wlo, whi) = calibration.coverage(t_held, tau_cal)
-            pw, errw, _ = calibration.coverage(t_held, tau_w)
-            _, curve_w = calibration.wilks_coverage(t_held, lv)
-            curve = np.array([np.mean(t_held <= safe_threshold(t_cal, a)[0]) for a in lv])
-        cov = dict(
-            coverage=p,
-            coverage_err=err,
-            wilson_lo=wlo,
-            wilson_hi=whi,
-            coverage_wilks=pw,
-            coverage_wilks_err=errw,
-        )
+    cov, curve, curve_w = _heldout_coverage(t_cal, t_held, tau_cal, tau_w, lv)
     out = dict(
         n=int(n),
         level=float(level),

@@ -57,22 +57,89 @@ def analyze_hst(
     """
     import pandas as pd
 
-    from subslope.figures.paper import hst_combined, hst_profiles
-    from subslope.io.observations import load_hst
-    from subslope.nre.train import load_estimator
-
-    obs = load_hst(hst_folder)
-    names = [o.name for o in obs]
+    names, theta_e, lx, ly, images = _lenses(hst_folder, pixel_scale, lens_centre)
     combine = list(names) if combine is None else list(combine)
     unknown = sorted((set(combine) | set(show) | set(highlight)) - set(names))
     if unknown:
         raise ValueError(f"hst: unknown system(s) {unknown}; catalogued: {names}")
+    prof, meta = _profiles(
+        model_path, images, theta_e, lx, ly, gammas, batch_size, device, pixel_scale
+    )
+    g = np.asarray(gammas, dtype=np.float64)
+    thr = load_thresholds(thresholds_json)
+    tau1, n1 = threshold_for(thr, 1)
+    geometry = {"lens_x": lx, "lens_y": ly, "theta_e": theta_e}
+    rows = [
+        _row(name, prof[k], g, tau1, 1, n1, {key: v[k] for key, v in geometry.items()})
+        for k, name in enumerate(names)
+    ]
+    idx = [names.index(s) for s in combine]
+    combined = intervals.stack(prof[idx])
+    tau_c, n_c = threshold_for(thr, len(idx))
+    iv_c = intervals.interval(combined, g, tau_c)
+    rows.append(
+        _row("combined", combined, g, tau_c, len(idx), n_c, dict.fromkeys(geometry, np.nan))
+    )
+    table = pd.DataFrame(rows)
+    write_text(out_csv, table.to_csv(index=False))
+    _write_h5(out_h5, names, prof, g, geometry, combined, combine, run_name, model_path)
+    source = f"estimator {meta.get('config_hash', '')}"
+    shown = {s: prof[names.index(s)] for s in (show or names)}
+    _figures(
+        g,
+        shown,
+        combined,
+        iv_c,
+        (tau1, tau_c),
+        thr,
+        (fig5_stem, fig6_stem),
+        cdm_csv,
+        (nfw_scene, tnfw_scene),
+        run_name=run_name,
+        source=source,
+        highlight=tuple(highlight),
+        n_images=len(idx),
+    )
+    return table
+
+
+def _lenses(hst_folder, pixel_scale: float, lens_centre: Mapping[str, Any] | None):
+    """Names, Einstein radii, measured lens centres and images of the HST cutouts."""
+    from subslope.io.observations import load_hst
+
+    obs = load_hst(hst_folder)
     centres = [
         find_lens_centre(o.image, pixel_scale=pixel_scale, **dict(lens_centre or {})) for o in obs
     ]
-    images = np.stack([o.image for o in obs]).astype(np.float32)
     theta_e = np.array([o.theta_e for o in obs])
     lx, ly = np.array([c[0] for c in centres]), np.array([c[1] for c in centres])
+    return (
+        [o.name for o in obs],
+        theta_e,
+        lx,
+        ly,
+        np.stack([o.image for o in obs]).astype(np.float32),
+    )
+
+
+def _row(
+    system: str, profile, g, tau: float, n_images: int, threshold_n: int, geometry
+) -> dict[str, Any]:
+    """One row of intervals.csv: the interval of ``profile`` at ``tau``."""
+    iv = intervals.interval(profile, g, tau)
+    return {
+        "system": system,
+        "n_images": n_images,
+        "threshold_n": threshold_n,
+        **geometry,
+        **iv.as_dict(),
+    }
+
+
+def _profiles(model_path, images, theta_e, lx, ly, gammas, batch_size, device, pixel_scale):
+    """ln r̂ of the cutouts with the estimator's own pre-processing, and its metadata."""
+    from subslope.nre.train import load_estimator
+
     model, meta = load_estimator(model_path)
     prep = meta.get("preprocess", {})
     prof = log_ratio_profiles(
@@ -88,54 +155,63 @@ def analyze_hst(
         pixel_scale=prep.get("pixel_scale", pixel_scale),
         mask_factor=prep.get("mask_factor", 1.5),
     )
-    g = np.asarray(gammas, dtype=np.float64)
-    thr = load_thresholds(thresholds_json)
-    tau1, n1 = threshold_for(thr, 1)
-    rows = []
-    for k, name in enumerate(names):
-        iv = intervals.interval(prof[k], g, tau1)
-        rows.append(
-            {
-                "system": name,
-                "n_images": 1,
-                "threshold_n": n1,
-                "lens_x": lx[k],
-                "lens_y": ly[k],
-                "theta_e": theta_e[k],
-                **iv.as_dict(),
-            }
+    return prof, meta
+
+
+def _write_h5(path, names, prof, g, geometry, combined, combine, run_name: str, model_path) -> None:
+    """profiles.h5: names, ln r̂ (systems × grid), the grid, the lens geometry, the combined
+    stack and its systems; the run name and estimator as attributes."""
+    arrays = {
+        "names": np.array(names, dtype="S"),
+        "log_ratio": prof,
+        "gammas": g,
+        **geometry,
+        "combined": combined,
+        "combined_systems": np.array(combine, dtype="S"),
+    }
+    arrays = {
+        k: arrays[k]
+        for k in (
+            "names",
+            "log_ratio",
+            "gammas",
+            "theta_e",
+            "lens_x",
+            "lens_y",
+            "combined",
+            "combined_systems",
         )
-    idx = [names.index(s) for s in combine]
-    combined = intervals.stack(prof[idx])
-    tau_c, n_c = threshold_for(thr, len(idx))
-    iv_c = intervals.interval(combined, g, tau_c)
-    rows.append(
-        {
-            "system": "combined",
-            "n_images": len(idx),
-            "threshold_n": n_c,
-            "lens_x": np.nan,
-            "lens_y": np.nan,
-            "theta_e": np.nan,
-            **iv_c.as_dict(),
-        }
-    )
-    table = pd.DataFrame(rows)
-    write_text(out_csv, table.to_csv(index=False))
-    out_h5 = Path(out_h5)
-    with atomic_write(out_h5) as tmp, h5py.File(tmp, "w") as fh:
-        fh.create_dataset("names", data=np.array(names, dtype="S"))
-        fh.create_dataset("log_ratio", data=prof)
-        fh.create_dataset("gammas", data=g)
-        fh.create_dataset("theta_e", data=theta_e)
-        fh.create_dataset("lens_x", data=lx)
-        fh.create_dataset("lens_y", data=ly)
-        fh.create_dataset("combined", data=combined)
-        fh.create_dataset("combined_systems", data=np.array(combine, dtype="S"))
+    }
+    with atomic_write(Path(path)) as tmp, h5py.File(tmp, "w") as fh:
+        for key, value in arrays.items():
+            fh.create_dataset(key, data=value)
         fh.attrs["run_name"] = run_name
         fh.attrs["model"] = os.fspath(model_path)
-    source = f"estimator {meta.get('config_hash', '')}"
-    shown = {s: prof[names.index(s)] for s in (show or names)}
+
+
+def _figures(
+    g,
+    shown,
+    combined,
+    iv_c,
+    taus,
+    thr,
+    stems,
+    cdm_csv,
+    scenes,
+    *,
+    run_name,
+    source,
+    highlight,
+    n_images,
+) -> None:
+    """Figure 5 (every shown lens, τ_1) and figure 6 (the combined stack, τ_N, with the
+    a = 1 CDM bands when the grid ran)."""
+    import pandas as pd
+
+    from subslope.figures.paper import hst_combined, hst_profiles
+
+    tau1, tau_c = taus
     fig5 = hst_profiles(
         g,
         shown,
@@ -144,12 +220,12 @@ def analyze_hst(
         source=source,
         kind="log_ratio",
         wilks=calibration.wilks_threshold(thr.get("level", 0.68)),
-        highlight=tuple(highlight),
+        highlight=highlight,
     )
-    save_figure(fig5, fig5_stem, run_name=run_name)
+    save_figure(fig5, stems[0], run_name=run_name)
     cdm = pd.read_csv(cdm_csv) if cdm_csv else None
-    bn = cdm_band(cdm, nfw_scene)
-    bt = cdm_band(cdm, tnfw_scene) if tnfw_scene else None
+    bn = cdm_band(cdm, scenes[0])
+    bt = cdm_band(cdm, scenes[1]) if scenes[1] else None
     fig6 = hst_combined(
         g,
         combined,
@@ -160,7 +236,6 @@ def analyze_hst(
         run_name=run_name,
         source=source,
         kind="log_ratio",
-        n_images=len(idx),
+        n_images=n_images,
     )
-    save_figure(fig6, fig6_stem, run_name=run_name)
-    return table
+    save_figure(fig6, stems[1], run_name=run_name)

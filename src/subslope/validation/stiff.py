@@ -136,6 +136,29 @@ def _cosmos_sources(macro, folder, seed):
     return R.PixelatedSources(stamps=st, pixel_scale=np.asarray([ps]), offsets=off)
 
 
+def _case_numbers(geo, label, img, gamma, sheet, kap) -> StiffCase:
+    """The row of one stiff case: arc, centre and total flux relative to the smooth model
+    (``geo = (smooth, arc mask, centre slices, N_sub)``) and the summed subhalo κ with its
+    sheet."""
+    smooth, arc, centre, n_sub = geo
+    km = float(kap.mean()) if kap is not None else 0.0
+    ks = -km if sheet else 0.0
+    return StiffCase(
+        label,
+        gamma,
+        0 if kap is None else n_sub,
+        sheet,
+        float(img[arc].sum() / smooth[arc].sum()),
+        float(img[centre].sum()),
+        float(img.sum() / smooth.sum()),
+        km,
+        float(kap.min()) if kap is not None else 0.0,
+        float(kap.max()) if kap is not None else 0.0,
+        ks,
+        km + ks,
+    )
+
+
 def stiff_cases(
     psf,
     *,
@@ -176,26 +199,9 @@ def stiff_cases(
     ic = int(round(macro["lens_x"][0] / d + (n - 1) / 2))
     centre = (slice(jc - 2, jc + 3), slice(ic - 2, ic + 3))
 
-    def numbers(label, img, gamma, sheet, kap):
-        km = float(kap.mean()) if kap is not None else 0.0
-        ks = -km if sheet else 0.0
-        return StiffCase(
-            label,
-            gamma,
-            0 if kap is None else n_sub,
-            sheet,
-            float(img[arc].sum() / smooth[arc].sum()),
-            float(img[centre].sum()),
-            float(img.sum() / smooth.sum()),
-            km,
-            float(kap.min()) if kap is not None else 0.0,
-            float(kap.max()) if kap is not None else 0.0,
-            ks,
-            km + ks,
-        )
-
+    geo = (smooth, arc, centre, n_sub)
     images = {"smooth (N_sub = 0)": smooth}
-    cases = [numbers("smooth (N_sub = 0)", smooth, None, False, None)]
+    cases = [_case_numbers(geo, "smooth (N_sub = 0)", smooth, None, False, None)]
     pops = {}
     for gam in gammas:
         m = dict(macro, gamma_sub=np.array([float(gam)]))
@@ -215,7 +221,7 @@ def stiff_cases(
                 )
             label = f"γ = {gam:g}, N_sub = {n_sub}, sheet {'on' if sheet else 'off'}"
             images[label] = img
-            cases.append(numbers(label, img, float(gam), sheet, kap))
+            cases.append(_case_numbers(geo, label, img, float(gam), sheet, kap))
     return {
         "images": images,
         "cases": cases,
