@@ -31,6 +31,7 @@ from astropy.cosmology import Planck18
 from astropy.io import fits
 
 from subslope.physics.instrument import ZERO_POINT
+from subslope.ragged import counts_to_offsets
 
 COSMOS_ZERO_POINT = 25.95
 """Mean AB zero point of the COSMOS F814W stamps (e⁻/s ↔ magnitude)."""
@@ -191,7 +192,7 @@ def split_idents(
     counts[(frac > 0) & (counts == 0)] = 1
     # hand out the rounding remainder (or take back the minimum-one excess) via the largest split
     counts[int(np.argmax(frac))] += len(idents) - counts.sum()
-    edges = np.concatenate([[0], np.cumsum(counts)])
+    edges = counts_to_offsets(counts)
     return {s: np.sort(ordered[edges[k] : edges[k + 1]]) for k, s in enumerate(SPLITS)}
 
 

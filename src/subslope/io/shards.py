@@ -45,6 +45,7 @@ import numpy as np
 
 from subslope.config import canonical_json, config_hash
 from subslope.io.atomic import atomic_write
+from subslope.ragged import counts_to_offsets
 
 __all__ = [
     "FORMAT_NAME",
@@ -263,7 +264,7 @@ class Shard:
         (an int, a slice or an index array); ``counts`` per selected image."""
         arrays = self.group(name)
         counts = arrays["counts"]
-        off = np.concatenate([[0], np.cumsum(counts)])
+        off = counts_to_offsets(np.asarray(counts))
         sel = np.atleast_1d(np.arange(counts.size)[index])
         pick = (
             np.concatenate([np.arange(off[i], off[i + 1]) for i in sel])

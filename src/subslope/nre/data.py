@@ -45,6 +45,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from subslope.physics.instrument import PIXEL_SCALE
+from subslope.ragged import counts_to_offsets
 
 from .preprocess import preprocess, read_whitening
 
@@ -148,7 +149,7 @@ class ShardBatches(Dataset):
         self.shuffle, self.seed, self.drop_last = bool(shuffle), int(seed), bool(drop_last)
         self.pixel_scale, self.mask_factor = pixel_scale, mask_factor
         self.lengths = shard_lengths(self.paths, require_label=require_label)
-        self.offsets = np.concatenate([[0], np.cumsum(self.lengths)]).astype(np.int64)
+        self.offsets = counts_to_offsets(np.asarray(self.lengths))
         self.n_images = int(self.offsets[-1])
         if self.n_images == 0:
             raise ValueError(f"shards {self.paths} hold no images")

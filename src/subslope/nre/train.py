@@ -163,7 +163,8 @@ def train(
 
     Parameters
     ----------
-    config: the ``training:`` section (:data:`TRAINING_DEFAULTS` fills missing keys).
+    config: the ``training:`` section (:func:`subslope.nre.training_config.training_defaults`
+        fills missing keys).
     train_shards, val_shards: HDF5 shard paths.
     whitening: ``(mean, std)``, a mapping or the whitening JSON path.
     out_dir: receives ``model.pt`` and ``training_log.csv``.

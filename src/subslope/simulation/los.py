@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from subslope.ragged import counts_to_starts
 from subslope.simulation.los_model import (
     DEFAULT_CONFIG,
     LosConfig,
@@ -98,7 +99,7 @@ class LosBatch:
     offsets: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
-        offsets = np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
+        offsets = counts_to_starts(np.asarray(self.counts))
         object.__setattr__(self, "offsets", offsets)
 
     def system(self, i: int) -> LosHalos:
@@ -148,7 +149,7 @@ class LosPopulation:
 
     @property
     def offsets(self) -> np.ndarray:
-        return np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
+        return counts_to_starts(np.asarray(self.counts))
 
 
 # --------------------------------------------------------------------------------------

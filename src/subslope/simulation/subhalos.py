@@ -33,6 +33,7 @@ from scipy import stats
 from subslope.physics import concentration as _conc
 from subslope.physics import cosmology as _cosmo
 from subslope.physics.instrument import NPIX, PIXEL_SCALE
+from subslope.ragged import counts_to_offsets
 from subslope.simulation.priors import Prior
 
 __all__ = [
@@ -67,7 +68,7 @@ def _counts(counts) -> np.ndarray:
 def offsets(counts) -> np.ndarray:
     """Start indices ``(B + 1,)``: system ``b`` owns ``[offsets[b], offsets[b + 1])``."""
     c = _counts(counts)
-    return np.concatenate([[0], np.cumsum(c)]).astype(np.int64)
+    return counts_to_offsets(c)
 
 
 def system_index(counts) -> np.ndarray:
