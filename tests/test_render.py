@@ -12,7 +12,7 @@ import torch
 from subslope.physics.grid import pixel_grid
 from subslope.physics.instrument import gaussian_psf, noise_sigma_map
 from subslope.physics.light.pixelated import pad_stamps
-from subslope.physics.light.sersic import magnitude_to_flux, sersic_amp_from_flux
+from subslope.physics.light.sersic import magnitude_to_flux
 from subslope.physics.profiles.epl import epl_convergence, epl_deflection
 from subslope.render import counters, kernels, populations
 from subslope.render import pipeline as R
@@ -388,76 +388,19 @@ def test_default_settings_error_budget(seed, n_sub, n_los):
 # ------------------------------------------------------------------ lenstronomy
 @pytest.mark.reference
 def test_against_lenstronomy():
-    from lenstronomy.Data.imaging_data import ImageData
-    from lenstronomy.Data.psf import PSF as LPSF
-    from lenstronomy.ImSim.image_model import ImageModel
-    from lenstronomy.LensModel.lens_model import LensModel
-    from lenstronomy.LightModel.light_model import LightModel
+    """EPL + shear + multipoles + 6 EPL subhalos with their sheet, Sérsic source, float64:
+    our image against lenstronomy's EPL model of the same parameters
+    (:mod:`subslope.validation.lenstronomy`, the one adapter)."""
+    from subslope.validation.lenstronomy import lenstronomy_model
 
     m = macro_of(1, seed=30, lens_light=False)
     m["src_rotation"][:] = 0.0
     subs = subs_of([6], seed=31, gamma=(1.6, 2.4), log_amp=(-2, -1.3))
     s = dataclasses.replace(FAST, dtype=torch.float64, n_terms=30, n_terms_main=30)
     ours = R.render(m, PSF, s, subhalos=subs)[0].numpy()
-
-    g = {k: float(v[0]) for k, v in m.items()}
-    kw_lens = [
-        dict(
-            theta_E=g["theta_e"],
-            gamma=g["gamma_ml"],
-            e1=g["lens_e1"],
-            e2=g["lens_e2"],
-            center_x=g["lens_x"],
-            center_y=g["lens_y"],
-        ),
-        dict(gamma1=g["shear_g1"], gamma2=g["shear_g2"], ra_0=0.0, dec_0=0.0),
-        dict(m=3, a_m=g["a3"], phi_m=g["phi3"], center_x=g["lens_x"], center_y=g["lens_y"]),
-        dict(m=4, a_m=g["a4"], phi_m=g["phi4"], center_x=g["lens_x"], center_y=g["lens_y"]),
-    ]
-    models = ["EPL", "SHEAR", "MULTIPOLE", "MULTIPOLE"]
-    sub_kw = [
-        dict(
-            theta_E=float(a ** (1 / (gm - 1))),
-            gamma=float(gm),
-            e1=float(e1),
-            e2=float(e2),
-            center_x=float(x),
-            center_y=float(y),
-        )
-        for a, gm, e1, e2, x, y in zip(subs.amp, subs.gamma, subs.e1, subs.e2, subs.x, subs.y)
-    ]
-    n, d = 100, 0.04
-    xx, yy = pixel_grid(n, d, dtype=torch.float64)
-    kappa = LensModel(["EPL"] * len(sub_kw)).kappa(xx.numpy().ravel(), yy.numpy().ravel(), sub_kw)
-    kw_lens += sub_kw + [dict(kappa=-float(np.mean(kappa)), ra_0=0.0, dec_0=0.0)]
-    models += ["EPL"] * len(sub_kw) + ["CONVERGENCE"]
-    amp = float(sersic_amp_from_flux(magnitude_to_flux(g["src_mag"]), g["src_r"], g["src_n"]))
-    kw_src = [
-        dict(
-            amp=amp,
-            R_sersic=g["src_r"],
-            n_sersic=g["src_n"],
-            e1=g["src_e1"],
-            e2=g["src_e2"],
-            center_x=g["src_x"],
-            center_y=g["src_y"],
-        )
-    ]
-    data = ImageData(
-        image_data=np.zeros((n, n)),
-        ra_at_xy_0=-(n - 1) / 2 * d,
-        dec_at_xy_0=-(n - 1) / 2 * d,
-        transform_pix2angle=np.array([[d, 0], [0, d]]),
-    )
-    psf = LPSF(psf_type="PIXEL", kernel_point_source=PSF.numpy())
-    im = ImageModel(
-        data,
-        psf,
-        lens_model_class=LensModel(models),
-        source_model_class=LightModel(["SERSIC_ELLIPSE"]),
-        kwargs_numerics={"supersampling_factor": 1},
-    )
-    theirs = im.image(kwargs_lens=kw_lens, kwargs_source=kw_src)
+    model = lenstronomy_model(m, PSF.numpy(), 0, subhalos=subs, epl="EPL")
+    assert model.n_planes == 1
+    theirs = model.image()
     rel = np.linalg.norm(ours - theirs) / np.linalg.norm(theirs)
     print(f"lenstronomy rel L2 = {rel:.2e}")
     assert rel <= 1e-3

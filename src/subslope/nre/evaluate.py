@@ -13,10 +13,11 @@ import torch
 
 from subslope.devices import pick_device
 from subslope.nre.preprocess import preprocess, read_whitening
+from subslope.nre.training_config import training_defaults
 from subslope.physics.instrument import PIXEL_SCALE
 from subslope.stats.intervals import check_grid
 
-__all__ = ["log_ratio_profiles"]
+__all__ = ["log_ratio_profiles", "estimator_profiles"]
 
 
 def log_ratio_profiles(
@@ -92,3 +93,38 @@ def log_ratio_profiles(
             xt = torch.as_tensor(x, dtype=dtype, device=dev)
             out[s:e] = model.log_ratio_grid(xt, grid_t).double().cpu().numpy()
     return out
+
+
+def estimator_profiles(
+    model,
+    meta,
+    images,
+    theta_e,
+    lens_x,
+    lens_y,
+    gammas,
+    *,
+    batch_size: int = 64,
+    device=None,
+    pixel_scale: float | None = None,
+) -> np.ndarray:
+    """:func:`log_ratio_profiles` with the whitening and pre-processing the estimator was
+    trained with (``meta`` of :func:`subslope.nre.train.load_estimator`). A model file
+    without pre-processing metadata falls back on ``pixel_scale`` (if given) and on the
+    training defaults of the config schema."""
+    defaults = training_defaults()
+    prep = meta.get("preprocess", {})
+    fallback = defaults["pixel_scale"] if pixel_scale is None else pixel_scale
+    return log_ratio_profiles(
+        model,
+        images,
+        theta_e,
+        lens_x,
+        lens_y,
+        meta["whitening"],
+        gammas,
+        batch_size=batch_size,
+        device=None if device in (None, "auto") else device,
+        pixel_scale=prep.get("pixel_scale", fallback),
+        mask_factor=prep.get("mask_factor", defaults["mask_factor"]),
+    )

@@ -9,8 +9,7 @@ from pathlib import Path
 import h5py
 
 from subslope.io.ratio_profiles import write_profiles
-from subslope.nre.evaluate import log_ratio_profiles
-from subslope.physics.instrument import PIXEL_SCALE
+from subslope.nre.evaluate import estimator_profiles
 
 __all__ = ["evaluate_shard"]
 
@@ -30,24 +29,21 @@ def evaluate_shard(
     from subslope.nre.train import load_estimator
 
     model, meta = load_estimator(model_path)
-    prep = meta.get("preprocess", {})
     with h5py.File(shard_path, "r") as fh:
         params = {k: fh[f"params/{k}"][...] for k in ("theta_e", "lens_x", "lens_y")}
         for k in ("gamma_sub", "set_index", "c_multiplier"):
             params[k] = fh[f"params/{k}"][...] if f"params/{k}" in fh else None
         scene = fh.attrs.get("scene", "")
-        profiles = log_ratio_profiles(
+        profiles = estimator_profiles(
             model,
+            meta,
             fh["images"],
             params["theta_e"],
             params["lens_x"],
             params["lens_y"],
-            meta["whitening"],
             gammas,
             batch_size=batch_size,
-            device=None if device in (None, "auto") else device,
-            pixel_scale=prep.get("pixel_scale", PIXEL_SCALE),
-            mask_factor=prep.get("mask_factor", 1.5),
+            device=device,
         )
     attrs = {
         "scene": str(scene),

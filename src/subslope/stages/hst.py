@@ -14,7 +14,7 @@ import numpy as np
 from subslope.figures.save import save_figure
 from subslope.io.atomic import atomic_write, write_text
 from subslope.io.observations import find_lens_centre
-from subslope.nre.evaluate import log_ratio_profiles
+from subslope.nre.evaluate import estimator_profiles
 from subslope.physics.instrument import PIXEL_SCALE
 from subslope.stages.calibrate import load_thresholds, threshold_for
 from subslope.stages.cdm_grid import cdm_band
@@ -141,19 +141,17 @@ def _profiles(model_path, images, theta_e, lx, ly, gammas, batch_size, device, p
     from subslope.nre.train import load_estimator
 
     model, meta = load_estimator(model_path)
-    prep = meta.get("preprocess", {})
-    prof = log_ratio_profiles(
+    prof = estimator_profiles(
         model,
+        meta,
         images,
         theta_e,
         lx,
         ly,
-        meta["whitening"],
         gammas,
         batch_size=batch_size,
-        device=None if device in (None, "auto") else device,
-        pixel_scale=prep.get("pixel_scale", pixel_scale),
-        mask_factor=prep.get("mask_factor", 1.5),
+        device=device,
+        pixel_scale=pixel_scale,
     )
     return prof, meta
 
