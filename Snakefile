@@ -5,10 +5,11 @@
 # module subslope.stages.<stage> that its thin workflow/scripts call:
 #
 #   data      fetch_data (always on)            gallery   plot_hst_gallery
-#   simulate  shards, whitening, scene figures  train     train_estimator
-#   evaluate  profiles on the gamma grid        calibrate thresholds per N, coverage
-#   cdm_grid  concentration grid (figure 4)     hst       the 13 real lenses (figures 5, 6)
-#   figures   training curves, figures 2, 3     summary   results/summary.md
+#   simulate  shards, whitening, scene figures  domain    HST lens-light fits, domain check
+#   train     train_estimator                   evaluate  profiles on the gamma grid
+#   calibrate thresholds per N, coverage        cdm_grid  concentration grid (figure 4)
+#   hst       the 13 real lenses (figures 5, 6) figures   training curves, figures 2, 3
+#   summary   results/summary.md
 #
 # Run:  snakemake --cores 2                        (config/config.yaml)
 #       snakemake --cores 2 --configfile my.yaml   (another campaign)
@@ -35,6 +36,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/data.smk"
 include: "workflow/rules/gallery.smk"
 include: "workflow/rules/simulate.smk"
+include: "workflow/rules/domain.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/calibrate.smk"

@@ -39,7 +39,7 @@ def main() -> None:
     )
     for seed in SEEDS:
         t = time.perf_counter()
-        res = D.stiff_cases(psf, seed=seed, settings=settings)
+        res = D.stiff_cases(psf, seed=seed, settings=settings, centres=("origin", "mass_centroid"))
         print(f"\nseed {seed} ({time.perf_counter() - t:.0f} s)")
         print(D.format_table(res["cases"]))
         try:
@@ -50,7 +50,13 @@ def main() -> None:
             for c in res["cases"][1:]:
                 m = dict(res["macro"], gamma_sub=np.array([c.gamma]))
                 ref = lenstronomy_model(
-                    m, psf.numpy(), 0, subhalos=res["subhalos"][c.gamma], sheets=c.sheet, epl="EPL"
+                    m,
+                    psf.numpy(),
+                    0,
+                    subhalos=res["subhalos"][c.gamma],
+                    sheets=c.sheet,
+                    epl="EPL",
+                    sheet_centre=c.sheet_centre,
                 ).image()
                 ours = res["images"][c.label]
                 print(

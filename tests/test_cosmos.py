@@ -8,6 +8,7 @@ from subslope.io.cosmos import (
     CosmosCatalog,
     CosmosCuts,
     CosmosError,
+    clean_stamp,
     normalize_to_magnitude,
     place_at_redshift,
     split_idents,
@@ -91,9 +92,78 @@ def test_normalize_to_magnitude():
 
 
 def test_missing_files_are_named(tmp_path, data_dir):
-    with pytest.raises(CosmosError, match="real_galaxy_catalog_23.5.fits"):
+    with pytest.raises(CosmosError, match=r"exactly one real_galaxy_catalog_\*.fits.*none"):
         CosmosCatalog.load(tmp_path)
+    with pytest.raises(CosmosError, match="real_galaxy_catalog_23.5.fits"):
+        CosmosCatalog.load(tmp_path, "real_galaxy_catalog_23.5.fits")
     for name in ("real_galaxy_catalog_23.5.fits", "real_galaxy_catalog_23.5_fits.fits"):
         (tmp_path / name).write_bytes((data_dir / "cosmos" / name).read_bytes())
     with pytest.raises(CosmosError, match="image file not found"):
         CosmosCatalog.load(tmp_path)
+
+
+def test_several_folders_read_together_with_the_extension_columns(data_dir):
+    both = CosmosCatalog.load([data_dir / "cosmos", data_dir / "cosmos_extension"])
+    assert len(both) == 110
+    ext = both.table.iloc[10:]
+    # the extension's fit table has ZPHOT (upper case) and no mag_auto: MAG stands in
+    assert ext["zphot"].between(0, 6).all() and ext["mag_auto"].between(18, 30).all()
+    assert set(both.table["folder"]) == {
+        str(data_dir / "cosmos"),
+        str(data_dir / "cosmos_extension"),
+    }
+    ident = int(ext["ident"].iloc[0])
+    assert both.stamp(ident).shape == (int(ext["ny"].iloc[0]), int(ext["nx"].iloc[0]))
+    assert both.noise_sigma(ident) == pytest.approx(np.sqrt(ext["noise_variance"].iloc[0]))
+
+
+def test_duplicate_idents_over_folders_are_refused(data_dir):
+    with pytest.raises(CosmosError, match="duplicate IDENT"):
+        CosmosCatalog.load([data_dir / "cosmos", data_dir / "cosmos"])
+
+
+def _blob(n=64, sigma=0.05, seed=1):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:n, :n] - (n - 1) / 2
+    galaxy = np.exp(-0.5 * (xx**2 + yy**2) / 4.0**2)
+    return galaxy, galaxy + rng.normal(0, sigma, (n, n))
+
+
+def test_cleaning_keeps_the_central_galaxy_and_zeroes_the_sky():
+    galaxy, stamp = _blob()
+    stamp[5:9, 5:9] += 3.0  # a neighbour in the corner
+    out = clean_stamp(stamp, 0.05, threshold=3.0, smoothing=1.0, dilate=2, taper=2.0)
+    assert out.peak_snr == pytest.approx(stamp.max() / 0.05)
+    assert np.all(out.image[5:9, 5:9] == 0)  # not connected to the centre
+    assert np.all((out.weight >= 0) & (out.weight <= 1))
+    assert 0.02 < out.footprint_fraction < 0.2
+    # the flux of the galaxy is kept to a few per cent; the sky outside is exactly zero
+    assert out.image.sum() == pytest.approx(galaxy.sum(), rel=0.05)
+    far = np.hypot(*(np.mgrid[:64, :64] - 31.5)) > 20
+    assert np.all(out.image[far] == 0)
+
+
+def test_cleaning_edge_cases():
+    galaxy, stamp = _blob()
+    hard = clean_stamp(stamp, 0.05, taper=0.0, dilate=0, smoothing=0.0)
+    assert set(np.unique(hard.weight)) <= {0.0, 1.0}
+    empty = clean_stamp(np.zeros((16, 16)), 1.0)
+    assert empty.footprint_fraction == 0.0 and np.all(empty.image == 0)
+    off_centre = np.zeros((32, 32))
+    off_centre[10:13, 10:13] = 10.0
+    assert clean_stamp(off_centre, 0.1).image[11, 11] > 0  # nearest bright region kept
+    with pytest.raises(CosmosError, match="noise sigma"):
+        clean_stamp(stamp, 0.0)
+
+
+def test_cleaning_the_bundled_stamps_keeps_their_flux(data_dir):
+    cat = CosmosCatalog.load(data_dir / "cosmos")
+    for ident, mag in zip(cat.idents, cat.table["mag_auto"], strict=True):
+        out = clean_stamp(cat.stamp(ident), cat.noise_sigma(ident))
+        assert np.all(np.isfinite(out.image))
+        assert 0.03 < out.footprint_fraction < 0.8
+        # the footprint holds the galaxy's catalogue flux (mag_auto): within 10% above a
+        # peak S/N of 10, within 30% for the faintest stamp (its wings sink in the noise)
+        flux = 10 ** (-0.4 * (mag - 25.95))
+        tol = 0.1 if out.peak_snr > 10 else 0.3
+        assert out.image.sum() == pytest.approx(flux, rel=tol)

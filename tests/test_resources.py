@@ -23,10 +23,11 @@ def _leftovers(folder: Path) -> list[Path]:
 def test_registry_lists_the_real_data():
     reg = res.load_registry()
     paths = [e.path for e in reg]
-    assert len(paths) == len(set(paths)) == 18
+    assert len(paths) == len(set(paths)) == 21
     assert sum(p.startswith("hst/") and p.endswith(".npy") for p in paths) == 13
     assert "psf/emp_psf_f814w.fits" in paths
     assert sum(p.startswith("cosmos/") for p in paths) == 3
+    assert sum(p.startswith("cosmos_extension/") for p in paths) == 3
     by_path = {e.path: e for e in reg}
     assert by_path["hst/catalog.csv"].url is None  # compiled for this project: mirror-only
     assert all(
@@ -37,6 +38,8 @@ def test_registry_lists_the_real_data():
     assert by_path["psf/emp_psf_f814w.fits"].url.endswith(
         "paltas/main/datasets/hst_psf/emp_psf_f814w.fits"
     )
+    ext = by_path["cosmos_extension/real_galaxy_images_extension.fits"].url
+    assert "LSSTDESC/BlendingToolKit/90f1d531dc3db74d0fd6852fb6e82d457f062899/data/cosmos/" in ext
 
 
 def test_registry_matches_mirror_checksums(data_dir):
@@ -55,7 +58,7 @@ def test_registry_matches_mirror_checksums(data_dir):
 def test_fetch_from_real_mirror(data_dir, tmp_path):
     dest = tmp_path / "resources"
     files = res.fetch(dest, mirror=data_dir)
-    assert len(files) == 18 and all(f.is_file() and not f.is_symlink() for f in files)
+    assert len(files) == 21 and all(f.is_file() and not f.is_symlink() for f in files)
     assert (dest / "hst" / "SDSSJ0946+1006_npix100.npy").is_file()
     assert not _leftovers(dest)
     # Second call: everything present and verified, nothing rewritten.

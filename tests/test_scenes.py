@@ -248,7 +248,9 @@ def test_sersic_source_keys(rng):
 def test_config_fragment_matches_presets_and_schema():
     cfg = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))
     from_fragment = scenes_from_config(cfg["scenes"])
-    assert from_fragment == scenes_from_config({})
+    from test_config import SHIPPED_SCENE_CHOICES as realism
+
+    assert from_fragment == scenes_from_config({n: realism for n in PRESETS})
     frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
     schema = {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -270,9 +272,12 @@ def test_config_fragment_matches_presets_and_schema():
         for key, entry in props.items():
             if "properties" in entry:  # nested object (source.multi_sersic): compare its keys
                 check(entry["properties"], values[key], f"{where}.{key}")
-            elif "default" in entry:
+            elif "default" in entry and key not in realism.get(where, {}):
                 assert entry["default"] == values[key], f"{where}.{key}"
 
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+
+    train["lens_light"] = LENS_LIGHT_PRIORS["table1"]  # the schema's defaults: Table 1
     for section, sub in frag["$defs"]["scene"]["properties"].items():
         check(sub.get("properties", {}), train.get(section, {}), section)
 
@@ -388,3 +393,29 @@ def test_schema_accepts_and_rejects_multi_sersic():
         }
     )
     assert not ok({"kind": "multi_sersic", "multi_sersic": {"clumps": 2}})
+
+
+def test_named_lens_light_priors():
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+
+    table1 = Scene.from_config("train")
+    fits = Scene.from_config("train", {"lens_light": {"prior": "hst_fits"}})
+    assert (
+        table1.lens_light
+        == Scene.from_config("train", {"lens_light": {"prior": "table1"}}).lens_light
+    )
+    assert fits.lens_light.mag.support == (13.02, 16.9)
+    assert set(LENS_LIGHT_PRIORS) == {"table1", "hst_fits"}
+    # a prior written beside the name overrides that one key
+    one = Scene.from_config(
+        "nfw",
+        {"lens_light": {"prior": "hst_fits", "mag": {"dist": "uniform", "low": 16, "high": 17}}},
+    )
+    assert (
+        one.lens_light.mag.support == (16, 17)
+        and one.lens_light.n_sersic == fits.lens_light.n_sersic
+    )
+    with pytest.raises(
+        SceneError, match=r"scenes.train.lens_light.prior = 'sdss'; allowed: hst_fits, table1"
+    ):
+        Scene.from_config("train", {"lens_light": {"prior": "sdss"}})

@@ -150,7 +150,7 @@ def test_real_run_fetch_and_gallery(workdir, data_dir):
     assert not any(p.is_symlink() for p in resources.rglob("*"))  # copies, not links
     log = (workdir / "logs" / "plot_hst_gallery.log").read_text()
     assert "loaded 13 cutouts" in log and "SDSSJ0946+1006" in log
-    assert (workdir / "logs" / "fetch_data.log").read_text().count("copying from mirror") == 18
+    assert (workdir / "logs" / "fetch_data.log").read_text().count("copying from mirror") == 21
     # Up to date afterwards, even with the mirror moved: data are known by checksum.
     proc = snakemake(
         workdir,
@@ -251,6 +251,8 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
         "simulate_cdm_shard": 2,
         "compute_whitening": 1,
         "plot_scene_examples": 5,
+        "fit_lens_light": 1,
+        "check_domain": 1,
         "train_estimator": 1,
         "plot_training_curves": 1,
         "evaluate_profiles": 2,

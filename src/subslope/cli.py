@@ -104,7 +104,7 @@ def _preview(args: argparse.Namespace) -> int:
     import tempfile
 
     from subslope.figures.data import plot_scene_examples_from_shard
-    from subslope.simulation.scenes import resolved_scene, scene_multipliers
+    from subslope.simulation.resolve import resolved_scene, scene_multipliers
     from subslope.simulation.shard import simulate_shard
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -214,6 +214,29 @@ def _analyze_hst(args: argparse.Namespace) -> int:
     return 0
 
 
+def _domain_check(args: argparse.Namespace) -> int:
+    from subslope.stages.domain import domain_check_cli
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    config = _load_config(args.config)
+    if config is None:
+        return 1
+    try:
+        table = domain_check_cli(
+            config, args.scene, args.n, args.out, whitening_json=args.whitening, seed=args.seed
+        )
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(table.to_string(index=False))
+    print(
+        f"{int(table['inside'].sum())} of {len(table)} HST lenses inside; "
+        f"wrote {args.out}/domain_check.csv",
+        file=sys.stderr,
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="subslope", description="Subhalo effective density slope from strong-lensing images."
@@ -276,7 +299,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--ckpt", default=None, help="checkpoint folder (default OUT/checkpoints); resumed from"
     )
     p.set_defaults(func=_train)
+    _add_real_data_commands(commands)
+    return parser
 
+
+def _add_real_data_commands(commands) -> None:
+    """The commands that read the real HST lenses: analyze-hst, domain-check."""
     p = commands.add_parser(
         "analyze-hst", help="profiles, intervals and figures of the real HST lenses"
     )
@@ -287,7 +315,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hst", default=None, help="HST cutout folder (default <resources_dir>/hst)")
     p.add_argument("--cdm", default=None, help="cdm_grid.csv for the a = 1 bands of figure 6")
     p.set_defaults(func=_analyze_hst)
-    return parser
+
+    p = commands.add_parser(
+        "domain-check",
+        help="simulate N images of a scene and compare their statistics with the HST lenses",
+    )
+    p.add_argument("--config", required=True, help="workflow config file")
+    p.add_argument("--scene", default="train", help="scene name (default train)")
+    p.add_argument("--n", type=int, default=1000, help="simulated images (default 1000)")
+    p.add_argument("--out", required=True, help="output folder (domain_check.csv, figures)")
+    p.add_argument(
+        "--whitening",
+        default=None,
+        help="whitening JSON (rule compute_whitening); default: the simulated images' own",
+    )
+    p.add_argument("--seed", type=int, default=None, help="seed (default: the config's)")
+    p.set_defaults(func=_domain_check)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

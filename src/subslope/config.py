@@ -179,6 +179,7 @@ def validate(config: Mapping[str, Any], *, fill: bool = True) -> dict[str, Any]:
 STAGE_NEEDS: dict[str, tuple[str, ...]] = {
     "gallery": (),
     "simulate": (),
+    "domain": ("simulate",),
     "train": ("simulate",),
     "evaluate": ("train",),
     "calibrate": ("evaluate",),
@@ -232,7 +233,8 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
     Checked: the γ grid's order; every simulated scene's shard size against its
     ``images_per_set``; for the stages that run, the calibration and CDM scenes exist in
     ``simulation.scenes``, the calibrated stack sizes fit the stack scene's sets, and the
-    CDM grid includes the prediction multiplier a = 1.
+    CDM grid includes the prediction multiplier a = 1; the domain check's scene is
+    simulated and its percentile bounds are ordered.
     """
     problems: list[str] = []
     grid = config["inference"]["gamma_grid"]
@@ -285,6 +287,11 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
                 )
         if cdm["tnfw_scene"]:
             need_scene("cdm.tnfw_scene", cdm["tnfw_scene"])
+    if stages["domain"]:
+        need_scene("domain.scene", config["domain"]["scene"])
+        lo, hi = config["domain"]["bounds"]
+        if not lo < hi:
+            problems.append(f"config key domain.bounds = {[lo, hi]}: need low < high")
     return problems
 
 

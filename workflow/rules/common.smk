@@ -8,7 +8,7 @@ from snakemake.exceptions import WorkflowError
 import subslope.stages.plan
 import subslope.config
 import subslope.io.resources
-import subslope.simulation.scenes
+import subslope.simulation.resolve
 import subslope.stages.train
 
 # Validate once, when the workflow loads: the schema (types, ranges, defaults filled
@@ -33,6 +33,18 @@ def resource_files(prefix):
     ]
 
 
+def cosmos_files():
+    """The registered files of the configured COSMOS folders (simulation.sources.folder)."""
+    folder = config["simulation"]["sources"]["folder"]
+    names = folder if isinstance(folder, list) else [folder]
+    return [f for name in names for f in resource_files(os.path.join(name, ""))]
+
+
+def cosmos_dirs(files):
+    """The COSMOS folders of `files`, in configured order."""
+    return list(dict.fromkeys(os.path.dirname(f) for f in files))
+
+
 # Simulation: one entry {scene, shard, multiplier, path} per shard file of the config.
 SHARD_JOBS = subslope.stages.plan.shard_jobs(config)
 SIM_SCENES = sorted({job["scene"] for job in SHARD_JOBS})
@@ -46,7 +58,7 @@ def simulation_hash(scene):
     their profiles) valid and only the new multiplier is simulated and evaluated.
     """
     if scene not in _SIM_HASH:  # cached: the config is validated again for every call
-        sections = subslope.simulation.scenes.simulation_sections(config, scene)
+        sections = subslope.simulation.resolve.simulation_sections(config, scene)
         sections.pop("multipliers", None)
         _SIM_HASH[scene] = subslope.config.config_hash(sections)
     return _SIM_HASH[scene]
@@ -69,6 +81,14 @@ _SHARD_JOB = {}
 def shard_files(scene):
     """All shard files of `scene` (every multiplier for CDM scenes)."""
     return [job["path"] for job in SHARD_JOBS if job["scene"] == scene]
+
+
+def domain_shards():
+    """The first shards of domain.scene, as many as domain.n_images needs."""
+    scene = config["domain"]["scene"]
+    files = shard_files(scene)
+    per_shard = config["simulation"]["scenes"][scene]["images_per_shard"]
+    return files[: max(1, -(-config["domain"]["n_images"] // per_shard))]
 
 
 def example_shard(scene):
@@ -169,6 +189,11 @@ def benchmark_files():
         ]
         if shard_files("train"):
             out["simulate"].append("results/benchmarks/compute_whitening.tsv")
+    if STAGE_ON["domain"]:
+        out["domain"] = [
+            "results/benchmarks/fit_lens_light.tsv",
+            "results/benchmarks/check_domain.tsv",
+        ]
     if STAGE_ON["train"]:
         out["train"] = ["results/benchmarks/train_estimator.tsv"]
     if STAGE_ON["evaluate"]:
@@ -204,6 +229,8 @@ def all_targets():
         targets += rules.plot_hst_gallery.output
     if STAGE_ON["simulate"]:
         targets += simulation_targets()
+    if STAGE_ON["domain"]:
+        targets += rules.fit_lens_light.output + rules.check_domain.output
     if STAGE_ON["train"]:
         targets += rules.train_estimator.output
     if STAGE_ON["evaluate"]:
@@ -244,6 +271,8 @@ def summary_inputs(wildcards):
         inputs["training_log"] = rules.train_estimator.output.log_csv
     if STAGE_ON["hst"]:
         inputs["hst"] = rules.analyze_hst.output.csv
+    if STAGE_ON["domain"]:
+        inputs["domain"] = rules.check_domain.output.csv
     if STAGE_ON["cdm_grid"]:
         inputs["cdm"] = rules.measure_cdm_grid.output.csv
     if STAGE_ON["calibrate"]:

@@ -15,6 +15,7 @@ rule fetch_data:
         hst=resource_files("hst/"),
         psf=resource_files("psf/"),
         cosmos=resource_files("cosmos/"),
+        cosmos_extension=resource_files("cosmos_extension/"),
     log:
         "logs/fetch_data.log",
     conda:

@@ -8,6 +8,7 @@ rule analyze_hst:
         model=rules.train_estimator.output.model,
         thresholds=rules.summarize_coverage.output.json,
         cdm=rules.measure_cdm_grid.output.csv if STAGE_ON["cdm_grid"] else [],
+        domain=rules.check_domain.output.csv if STAGE_ON["domain"] else [],
     output:
         h5="results/analyze_hst/profiles.h5",
         csv="results/analyze_hst/intervals.csv",

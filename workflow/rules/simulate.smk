@@ -8,7 +8,7 @@
 rule simulate_shard:
     input:
         psf=rules.fetch_data.output.psf,
-        cosmos=rules.fetch_data.output.cosmos,
+        cosmos=cosmos_files(),
     output:
         h5="results/simulate_shard/{scene}/shard_{shard}.h5",
     log:
@@ -59,7 +59,7 @@ rule compute_whitening:
 rule plot_scene_examples:
     input:
         shard=lambda wildcards: example_shard(wildcards.scene),
-        cosmos=rules.fetch_data.output.cosmos,
+        cosmos=cosmos_files(),
     output:
         png=report(
             "results/figures/scene_examples_{scene}.png",
@@ -74,6 +74,6 @@ rule plot_scene_examples:
     params:
         run_name=config["run_name"],
         n_examples=8,
-        cosmos=lambda wildcards, input: os.path.dirname(input.cosmos[0]),
+        cosmos=lambda wildcards, input: cosmos_dirs(input.cosmos),
     script:
         "../scripts/plot_scene_examples.py"

@@ -33,6 +33,7 @@ try:
         device=snakemake.params.device,
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
+        domain_csv=snakemake.input.domain or None,
     )
     logging.info("intervals:\n%s", table.to_string())
 except Exception:

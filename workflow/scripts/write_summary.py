@@ -21,6 +21,7 @@ try:
         hst_csv=inputs.get("hst"),
         cdm_csv=inputs.get("cdm"),
         calibration_csv=inputs.get("calibration"),
+        domain_csv=inputs.get("domain"),
         trend=trend,
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,

@@ -63,51 +63,35 @@ class CosmosCuts:
 
 @dataclass
 class CosmosCatalog:
-    """The joined catalogue of one COSMOS folder, one row per galaxy.
+    """The joined catalogue of one or more COSMOS folders, one row per galaxy.
 
-    ``table`` columns: ``ident, mag_auto, flux_radius`` (pixels), ``zphot``,
-    ``pixel_scale`` (arcsec), ``gal_filename, gal_hdu, nx, ny`` (stamp shape).
+    ``table`` columns: ``ident, mag_auto`` (the fit table's ``mag_auto``, else the main
+    table's ``MAG``), ``flux_radius`` (pixels), ``zphot``, ``pixel_scale`` (arcsec),
+    ``noise_variance`` (of the stamp pixels, (e⁻/s)²), ``folder, gal_filename, gal_hdu,
+    nx, ny`` (stamp shape). IDENTs must be unique over all folders.
     """
 
     folder: Path
     table: pd.DataFrame
 
     @classmethod
-    def load(
-        cls, folder: str | Path, catalog_file: str = CATALOG_FILE, fits_file: str = FITS_FILE
-    ) -> CosmosCatalog:
-        folder = Path(folder)
-        paths = [folder / catalog_file, folder / fits_file]
-        for path in paths:
-            if not path.is_file():
-                raise CosmosError(f"COSMOS catalogue file not found: {path}")
-        main = _read_table(paths[0], ["IDENT", "PIXEL_SCALE", "GAL_FILENAME", "GAL_HDU"])
-        fit = _read_table(paths[1], ["IDENT", "mag_auto", "flux_radius", "zphot"])
-        if len(main) != len(fit) or not np.array_equal(main["IDENT"], fit["IDENT"]):
-            raise CosmosError(
-                f"{paths[0].name} and {paths[1].name} do not list the same galaxies in the "
-                "same order (IDENT columns differ)"
-            )
-        table = pd.DataFrame(
-            {
-                "ident": main["IDENT"].astype(np.int64),
-                "mag_auto": fit["mag_auto"].astype(np.float64),
-                "flux_radius": fit["flux_radius"].astype(np.float64),
-                "zphot": fit["zphot"].astype(np.float64),
-                "pixel_scale": main["PIXEL_SCALE"].astype(np.float64),
-                "gal_filename": [str(s).strip() for s in main["GAL_FILENAME"]],
-                "gal_hdu": main["GAL_HDU"].astype(np.int64),
-            }
-        )
+    def load(cls, folder, catalog_file: str | None = None, fits_file: str | None = None):
+        """The catalogue of ``folder`` (a path or a list of paths, read in order).
+
+        Without ``catalog_file`` each folder's ``real_galaxy_catalog_*.fits`` (the one
+        not ending in ``_fits.fits``) is used, with ``<its stem>_fits.fits`` beside it."""
+        folders = [Path(f) for f in folder] if isinstance(folder, (list, tuple)) else [Path(folder)]
+        if not folders:
+            raise CosmosError("no COSMOS catalogue folder given")
+        parts = [_load_folder(f, catalog_file, fits_file) for f in folders]
+        table = pd.concat(parts, ignore_index=True)
         if table["ident"].duplicated().any():
             dup = table.loc[table["ident"].duplicated(), "ident"].tolist()[:5]
-            raise CosmosError(f"duplicate IDENT values in {paths[0].name}: {dup}")
-        shapes = [
-            _stamp_shape(folder / f, h) for f, h in zip(table["gal_filename"], table["gal_hdu"])
-        ]
-        table["ny"] = [s[0] for s in shapes]
-        table["nx"] = [s[1] for s in shapes]
-        return cls(folder=folder, table=table)
+            raise CosmosError(
+                f"duplicate IDENT values {dup} in the COSMOS catalogues of "
+                f"{[str(f) for f in folders]}"
+            )
+        return cls(folder=folders[0], table=table)
 
     def __len__(self) -> int:
         return len(self.table)
@@ -161,7 +145,16 @@ class CosmosCatalog:
         if len(rows) == 0:
             raise CosmosError(f"IDENT {ident} not in the COSMOS catalogue at {self.folder}")
         row = self.table.loc[rows[0]]
-        return _read_stamp(str(self.folder / row["gal_filename"]), int(row["gal_hdu"])).copy()
+        return _read_stamp(
+            str(Path(row["folder"]) / row["gal_filename"]), int(row["gal_hdu"])
+        ).copy()
+
+    def noise_sigma(self, ident: int) -> float:
+        """Pixel noise σ of galaxy ``ident``'s stamp (√NOISE_VARIANCE, e⁻/s per pixel)."""
+        row = self.table.loc[self.table["ident"] == int(ident)]
+        if row.empty:
+            raise CosmosError(f"IDENT {ident} not in the COSMOS catalogue at {self.folder}")
+        return float(np.sqrt(row["noise_variance"].iloc[0]))
 
 
 def split_idents(
@@ -249,7 +242,68 @@ def normalize_to_magnitude(
     return surface_brightness * (10 ** (-0.4 * (magnitude - zero_point)) / total)
 
 
-def _read_table(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
+def _catalog_files(folder: Path, catalog_file: str | None, fits_file: str | None):
+    if catalog_file is None:
+        found = sorted(
+            p.name
+            for p in folder.glob("real_galaxy_catalog_*.fits")
+            if not p.name.endswith("_fits.fits")
+        )
+        if len(found) != 1:
+            raise CosmosError(
+                f"COSMOS folder {folder} must hold exactly one real_galaxy_catalog_*.fits "
+                f"(besides its _fits.fits table), found {found or 'none'}"
+            )
+        catalog_file = found[0]
+    if fits_file is None:
+        fits_file = catalog_file[: -len(".fits")] + "_fits.fits"
+    return [folder / catalog_file, folder / fits_file]
+
+
+def _column(data: dict[str, np.ndarray], names: tuple[str, ...], path: Path) -> np.ndarray:
+    for name in names:
+        if name in data:
+            return data[name]
+    raise CosmosError(f"{path} lacks a column {' or '.join(names)}")
+
+
+def _load_folder(folder: Path, catalog_file: str | None, fits_file: str | None) -> pd.DataFrame:
+    """The joined table of one folder (the two catalogue tables and the stamp shapes)."""
+    paths = _catalog_files(folder, catalog_file, fits_file)
+    for path in paths:
+        if not path.is_file():
+            raise CosmosError(f"COSMOS catalogue file not found: {path}")
+    main = _read_table(
+        paths[0], ["IDENT", "PIXEL_SCALE", "GAL_FILENAME", "GAL_HDU", "MAG", "NOISE_VARIANCE"]
+    )
+    fit = _read_table(paths[1], ["IDENT"], optional=["mag_auto", "flux_radius", "zphot", "ZPHOT"])
+    if len(main["IDENT"]) != len(fit["IDENT"]) or not np.array_equal(main["IDENT"], fit["IDENT"]):
+        raise CosmosError(
+            f"{paths[0].name} and {paths[1].name} do not list the same galaxies in the "
+            "same order (IDENT columns differ)"
+        )
+    table = pd.DataFrame(
+        {
+            "ident": main["IDENT"].astype(np.int64),
+            "mag_auto": (fit["mag_auto"] if "mag_auto" in fit else main["MAG"]).astype(np.float64),
+            "flux_radius": _column(fit, ("flux_radius",), paths[1]).astype(np.float64),
+            "zphot": _column(fit, ("zphot", "ZPHOT"), paths[1]).astype(np.float64),
+            "pixel_scale": main["PIXEL_SCALE"].astype(np.float64),
+            "noise_variance": main["NOISE_VARIANCE"].astype(np.float64),
+            "folder": str(folder),
+            "gal_filename": [str(s).strip() for s in main["GAL_FILENAME"]],
+            "gal_hdu": main["GAL_HDU"].astype(np.int64),
+        }
+    )
+    shapes = [_stamp_shape(folder / f, h) for f, h in zip(table["gal_filename"], table["gal_hdu"])]
+    table["ny"] = [sh[0] for sh in shapes]
+    table["nx"] = [sh[1] for sh in shapes]
+    return table
+
+
+def _read_table(
+    path: Path, columns: list[str], optional: list[str] | None = None
+) -> dict[str, np.ndarray]:
     with fits.open(path) as hdul:
         if len(hdul) < 2 or not isinstance(hdul[1], fits.BinTableHDU):
             raise CosmosError(f"{path} has no binary table in HDU 1")
@@ -257,7 +311,8 @@ def _read_table(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
         missing = [c for c in columns if c not in data.columns.names]
         if missing:
             raise CosmosError(f"{path} lacks column(s) {missing}")
-        return {c: np.array(data[c]) for c in columns}
+        have = columns + [c for c in optional or () if c in data.columns.names]
+        return {c: np.array(data[c]) for c in have}
 
 
 def _stamp_shape(path: Path, hdu: int) -> tuple[int, int]:
@@ -278,3 +333,81 @@ def _read_stamp(path: str, hdu: int) -> np.ndarray:
         raise CosmosError(f"{path}[{hdu}] is not a finite 2-D image")
     data.setflags(write=False)
     return data
+
+
+@dataclass(frozen=True)
+class CleanedStamp:
+    """A stamp cleaned of its sky noise (:func:`clean_stamp`).
+
+    ``image``: the stamp × taper weight (zero outside the footprint); ``weight``: the
+    weight in [0, 1]; ``peak_snr``: the raw stamp's peak / its pixel noise σ;
+    ``footprint_fraction``: fraction of the stamp's pixels with weight > 0."""
+
+    image: np.ndarray
+    weight: np.ndarray
+    peak_snr: float
+    footprint_fraction: float
+
+
+def clean_stamp(
+    stamp: np.ndarray,
+    noise_sigma: float,
+    *,
+    threshold: float = 3.0,
+    smoothing: float = 1.0,
+    dilate: int = 2,
+    taper: float = 2.0,
+) -> CleanedStamp:
+    """Keep the central galaxy of a COSMOS stamp and zero its sky noise elsewhere.
+
+    1. smooth with a Gaussian of σ = ``smoothing`` pixels (0: none);
+    2. threshold at ``threshold`` × the smoothed noise σ·(Σ kernel²)^½;
+    3. keep the connected region holding the centre pixel, or, if the centre is below
+       the threshold, the region of the brightest smoothed pixel within a quarter of the
+       stamp side of the centre (else of the brightest pixel);
+    4. dilate by ``dilate`` pixels; 5. taper the edge with a raised cosine over ``taper``
+       pixels of distance inside the footprint (0: a hard edge).
+    """
+    from scipy import ndimage
+
+    img = np.asarray(stamp, dtype=np.float64)
+    if not (noise_sigma > 0 and np.isfinite(noise_sigma)):
+        raise CosmosError(f"stamp noise sigma must be finite and > 0, got {noise_sigma}")
+    if smoothing > 0:
+        smooth = ndimage.gaussian_filter(img, smoothing, mode="constant")
+        sigma_s = noise_sigma / (2.0 * np.sqrt(np.pi) * smoothing)
+    else:
+        smooth, sigma_s = img, noise_sigma
+    above = smooth > threshold * sigma_s
+    labels, _ = ndimage.label(above)
+    label = _central_label(labels, smooth)
+    foot = labels == label if label > 0 else np.zeros_like(above)
+    if dilate > 0 and foot.any():
+        foot = ndimage.binary_dilation(foot, iterations=int(dilate))
+    if taper > 0 and foot.any():
+        dist = ndimage.distance_transform_edt(np.pad(foot, 1))[1:-1, 1:-1]
+        t = np.clip(dist / taper, 0.0, 1.0)
+        weight = np.where(foot, 0.5 - 0.5 * np.cos(np.pi * t), 0.0)
+    else:
+        weight = foot.astype(np.float64)
+    return CleanedStamp(
+        image=img * weight,
+        weight=weight,
+        peak_snr=float(img.max() / noise_sigma),
+        footprint_fraction=float(np.mean(weight > 0)),
+    )
+
+
+def _central_label(labels: np.ndarray, smooth: np.ndarray) -> int:
+    """Label of the region at the stamp centre (see :func:`clean_stamp`, step 3)."""
+    ny, nx = labels.shape
+    cy, cx = (ny - 1) // 2, (nx - 1) // 2
+    if labels[cy, cx] > 0:
+        return int(labels[cy, cx])
+    yy, xx = np.mgrid[:ny, :nx]
+    near = (np.hypot(yy - cy, xx - cx) <= 0.25 * min(ny, nx)) & (labels > 0)
+    pool = near if near.any() else labels > 0
+    if not pool.any():
+        return 0
+    k = np.argmax(np.where(pool, smooth, -np.inf))
+    return int(labels.flat[k])

@@ -345,9 +345,11 @@ def _block_pass(
     blk: GridBlock,
     base: tuple[Tensor, Tensor] | None,
     with_sheet: bool,
+    moments: bool = False,
 ):
     """Deflection ``(b, m²)`` of one grid block (far field interpolated, rough tiles
-    exact, near field on tiles) and, for the sheet block, its κ sum ``(b,)``."""
+    exact, near field on tiles) and, for the sheet block, its κ sum ``(b,)``; with
+    ``moments``, ``(Σκ, Σκx, Σκy)`` ``(b, 1)`` each over the block's rays in its place."""
     b, m = p.b, blk.m
     fx, fy, fk, nodes, lagrange = _far_field(p, bx, by, blk)
     nn = len(nodes)
@@ -356,10 +358,11 @@ def _block_pass(
         return (lagrange @ v.reshape(b, nn, nn) @ lagrange.T).reshape(b, m * m)
 
     acc_x, acc_y = interp(fx), interp(fy)
-    k_sum = None
+    k_sum = kmap = None
     if with_sheet:
         w = lagrange.sum(0)
         k_sum = ((fk.reshape(b, nn, nn) * w[:, None]) * w[None, :]).sum((1, 2))
+        kmap = interp(fk) if moments else None
     nt = -(-m // TILE)
     tx_all, ty_all = _tiled(bx, m, TILE, 1e4), _tiled(by, m, TILE, 1e4)
     tile_g = disp = None
@@ -377,17 +380,26 @@ def _block_pass(
             acc_y = _replace_tiles(acc_y, rough, ey, b, m)
             if with_sheet:
                 kap_i = interp(fk)
-                k_sum = k_sum + (_replace_tiles(kap_i, rough, ek, b, m) - kap_i).sum(1)
+                kap_r = _replace_tiles(kap_i, rough, ek, b, m)
+                k_sum = k_sum + (kap_r - kap_i).sum(1)
+                kmap = kap_r if moments else None
     v, u, radius = _near_radius(p, blk, disp, tile_g)
     tiles, mem = near_pairs(v, u, radius, p.live, nt, TILE)
     if tiles.numel():
-        ox, oy, ok_ = near_on_tiles(
+        ox, oy, okmap, ok_ = near_on_tiles(
             p.near_k, p.table, p.profile, p.inv_rc2, tiles, mem, tx_all, ty_all, m, p.max_elements
         )
         acc_x = acc_x + ox
         acc_y = acc_y + oy
         if with_sheet:
             k_sum = k_sum + ok_
+            kmap = kmap + okmap if moments else None
+    if moments and with_sheet:
+        k_sum = (
+            kmap.sum(-1, keepdim=True),
+            (kmap * bx).sum(-1, keepdim=True),
+            (kmap * by).sum(-1, keepdim=True),
+        )
     return acc_x, acc_y, k_sum
 
 
@@ -406,6 +418,7 @@ def split_pass(
     base: tuple[Tensor, Tensor] | None,
     kernels,
     max_elements: int,
+    moments: bool = False,
 ):
     """Near/far population pass. Returns ``(alpha_x, alpha_y, kappa_sum)``.
 
@@ -421,7 +434,8 @@ def split_pass(
     :mod:`subslope.physics.pairs.sums`); ``max_elements``: bound on members × points per call.
 
     Returns ``alpha_x, alpha_y`` ``(b, P)`` (arcsec; no sheet) and ``kappa_sum`` ``(b,)``:
-    ``Σ_{pixel-centre rays} Σ_i κ_i``.
+    ``Σ_{pixel-centre rays} Σ_i κ_i``; with ``moments`` instead the tuple
+    ``(Σκ, Σκx, Σκy)`` ``(b, 1)`` each over those rays (the sheet centroid's moments).
     """
     far_k, near_k, *rest = kernels
     peaks_k = rest[0] if rest else None
@@ -449,6 +463,7 @@ def split_pass(
             blk,
             base if displaced else None,
             g == sheet_block,
+            moments,
         )
         outs_x.append(ax)
         outs_y.append(ay)

@@ -19,9 +19,10 @@ Pipeline for a batch of ``B`` systems, one function per step (``docs/simulation.
 Negative sheets: ``κ_sheet = −(1/P) Σ_pixels Σ_members κ_i`` with the member
 convergences taken at the pixel-centre rays *on that plane* (for the main-lens plane of
 a single-plane scene: the pixel centres themselves); the sheet deflection is
-``κ_sheet·(x, y)`` about the plane's origin. The summed convergence comes out of the
-same fused pass as the deflections (one extra multiply), so the sheet costs no second
-pass over the population.
+``κ_sheet·(x − c_x, y − c_y)`` about the plane's origin (``c = 0``, the reference) or
+the population's κ-weighted centre over those rays (``sheet_centre='mass_centroid'``).
+The summed convergence comes out of the same fused pass as the deflections (one extra
+multiply), so the sheet costs no second pass over the population.
 
 Components whose macro keys are absent (or populations that are empty) are not
 evaluated at all; every evaluated step increments
@@ -64,6 +65,13 @@ from subslope.physics.profiles.shear import shear_deflection
 from subslope.physics.raytrace import Plane, multi_plane_ray_shoot
 from subslope.ragged import pack_ragged
 from subslope.render.counters import count_step
+from subslope.render.inputs import (
+    GROUPS,
+    check_macro,
+    has_group,
+    multi_sersic_slots,
+    sheet_centre_pair,
+)
 from subslope.render.kernels import Kernels, kernels_for
 from subslope.render.populations import (
     PROFILE_KEYS,
@@ -79,89 +87,6 @@ from subslope.render.settings import PixelatedSources, RenderSettings, chunk_wid
 from subslope.render.tiles import GridBlock
 
 __all__ = ["RenderSettings", "PixelatedSources", "render_smooth", "render"]
-
-
-# ------------------------------------------------------------------------------ checks
-_REQUIRED = (
-    "z_lens",
-    "z_source",
-    "lens_x",
-    "lens_y",
-    "theta_e",
-    "lens_e1",
-    "lens_e2",
-    "gamma_ml",
-    "src_x",
-    "src_y",
-    "src_rotation",
-)
-_GROUPS = {
-    "multipoles": ("a3", "phi3", "a4", "phi4"),
-    "shear": ("shear_g1", "shear_g2"),
-    "lens_light": ("light_mag", "light_r", "light_n", "light_e1", "light_e2"),
-    "source_sersic": ("src_mag", "src_r", "src_n", "src_e1", "src_e2"),
-}
-
-
-def _multi_sersic_slots(macro: dict) -> int:
-    """Number K of multi-Sérsic component slots in ``macro`` (0: not a multi-Sérsic source)."""
-    if "src_ncomp" not in macro:
-        return 0
-    k = 0
-    while f"src_frac_{k}" in macro:
-        k += 1
-    return k
-
-
-_MULTI_PER = ("frac", "r", "n", "e1", "e2", "dx", "dy")
-
-
-def _check_macro(macro: dict, sources) -> int:
-    missing = [k for k in _REQUIRED if k not in macro]
-    if missing:
-        raise ValueError(
-            f"macro is missing keys {missing} (see subslope.simulation.macro.sample_macro)"
-        )
-    n = len(np.asarray(macro["z_lens"]))
-    for k, v in macro.items():
-        if np.ndim(v) != 1 or len(v) != n:
-            raise ValueError(f"macro[{k!r}] must be 1-D of length B = {n}, got shape {np.shape(v)}")
-    for g, keys in _GROUPS.items():
-        have = [k in macro for k in keys]
-        if any(have) and not all(have):
-            raise ValueError(f"macro has only some of the {g} keys {keys}: give all or none")
-    kmax = _multi_sersic_slots(macro)
-    if "src_ncomp" in macro or "src_mag_total" in macro:
-        need = ["src_mag_total", "src_ncomp"] + [
-            f"src_{p}_{j}" for j in range(max(kmax, 1)) for p in _MULTI_PER
-        ]
-        missing = [kk for kk in need if kk not in macro]
-        if missing:
-            raise ValueError(
-                f"multi-Sérsic source keys {missing} are missing from macro "
-                "(see subslope.simulation.scenes.multi_sersic_keys)"
-            )
-        if "src_mag" in macro or sources is not None:
-            raise ValueError(
-                "give exactly one source: multi-Sérsic keys (src_mag_total, src_ncomp, ...), "
-                "Sérsic keys (src_mag, ...) or sources="
-            )
-        return n
-    sersic = "src_mag" in macro
-    if sersic and sources is not None:
-        raise ValueError(
-            "give either Sérsic source keys (src_mag, ...) in macro or sources=, not both"
-        )
-    if not sersic and sources is None:
-        raise ValueError(
-            "no source: pass sources=PixelatedSources(...) or Sérsic keys src_mag, src_r, "
-            "src_n, src_e1, src_e2 in macro"
-        )
-    return n
-
-
-def _has(macro: dict, group: str) -> bool:
-    return _GROUPS[group][0] in macro
 
 
 def _bin(img: Tensor, k: int) -> Tensor:
@@ -191,6 +116,7 @@ class _Batch:
     kernels: Kernels
     geometry: Geometry
     grid: tuple[Tensor, Tensor, int]
+    sheet: tuple[str, str] = ("origin", "origin")
 
     @property
     def size(self) -> int:
@@ -226,7 +152,13 @@ def _subhalo_population(batch: _Batch, subhalos) -> Population | None:
         return None
     s = batch.settings
     return pack_population(
-        subhalos.profile, _flat_members(subhalos, sel), counts, s.n_terms, s.dtype, batch.device
+        subhalos.profile,
+        _flat_members(subhalos, sel),
+        counts,
+        s.n_terms,
+        s.dtype,
+        batch.device,
+        batch.sheet[0],
     )
 
 
@@ -248,9 +180,11 @@ def _lens_plane(batch: _Batch, sub_pop: Population | None):
         },
         settings.n_terms_main,
     ).contiguous()
-    shear = {kk: par(kk) for kk in _GROUPS["shear"]} if _has(batch.macro, "shear") else None
+    shear = {kk: par(kk) for kk in GROUPS["shear"]} if has_group(batch.macro, "shear") else None
     mpole = (
-        {kk: par(kk) for kk in _GROUPS["multipoles"]} if _has(batch.macro, "multipoles") else None
+        {kk: par(kk) for kk in GROUPS["multipoles"]}
+        if has_group(batch.macro, "multipoles")
+        else None
     )
 
     def lens_plane(tx: Tensor, ty: Tensor, displaced: bool = True) -> tuple[Tensor, Tensor]:
@@ -314,6 +248,7 @@ def _los_planes(batch: _Batch, los, lens_plane, zl: np.ndarray, zs: np.ndarray) 
             los.profile,
             table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2),
             c_slice,
+            batch.sheet[1],
         )
         has = c_slice > 0
 
@@ -388,7 +323,7 @@ def _source_light(
     """Source surface brightness at the source-plane positions (multi-Sérsic, Sérsic or
     pixelated), e⁻/s per arcsec²."""
     par, settings, device = batch.par, batch.settings, batch.device
-    kmax = _multi_sersic_slots(batch.macro)
+    kmax = multi_sersic_slots(batch.macro)
     if kmax:
         return _multi_sersic_source(batch, bx, by, kmax)
     if sources is None:
@@ -437,7 +372,7 @@ def _observe(batch: _Batch, sb: Tensor, psf: Tensor, smooth: bool) -> Tensor:
     xg, yg, _ = batch.grid
     k = settings.supersample
     n_ss = (settings.npix * k) ** 2
-    if not smooth and _has(batch.macro, "lens_light"):
+    if not smooth and has_group(batch.macro, "lens_light"):
         count_step("lens_light")
         sb = sb + sersic_ellipse_from_magnitude(
             xg[:, :n_ss],
@@ -516,10 +451,19 @@ def _sub_batches(
     return [np.arange(s, min(n, s + bs)) for s in range(0, n, bs)]
 
 
-def _render(macro, psf, settings: RenderSettings, sources, subhalos, los, smooth: bool) -> Tensor:
+def _render(
+    macro,
+    psf,
+    settings: RenderSettings,
+    sources,
+    subhalos,
+    los,
+    smooth: bool,
+    sheet=("origin", "origin"),
+) -> Tensor:
     if not isinstance(settings, RenderSettings):
         raise ValueError(f"settings must be a RenderSettings, got {type(settings).__name__}")
-    n = _check_macro(macro, sources)
+    n = check_macro(macro, sources)
     _check_populations(n, subhalos, los)
     device = pick_device(settings.device, key="simulation.render.device")
     psf_t = torch.as_tensor(psf).to(dtype=settings.dtype, device=device)
@@ -529,7 +473,7 @@ def _render(macro, psf, settings: RenderSettings, sources, subhalos, los, smooth
     with torch.no_grad():
         out = [
             _render_group(
-                _Batch(g, macro, settings, device, kernels, geometry, grid),
+                _Batch(g, macro, settings, device, kernels, geometry, grid, sheet),
                 psf_t,
                 sources,
                 subhalos,
@@ -562,6 +506,7 @@ def render(
     sources: PixelatedSources | None = None,
     subhalos=None,
     los=None,
+    sheet_centre="origin",
 ) -> Tensor:
     """Noise-free full image, ``(B, npix, npix)`` e⁻/s per pixel.
 
@@ -569,6 +514,10 @@ def render(
     ``psf``: odd 2-D kernel (sum 1) at the pixel scale; ``sources``: pixelated sources,
     or None with Sérsic source keys in ``macro``; ``subhalos``:
     :class:`subslope.simulation.subhalos.SubhaloPopulation` ('epl' | 'nfw' | 'tnfw'); ``los``:
-    :class:`subslope.simulation.los.LosPopulation` (reduced deflections for each system's z_source).
+    :class:`subslope.simulation.los.LosPopulation` (reduced deflections for each system's z_source);
+    ``sheet_centre``: where the negative sheets are centred, ``origin`` or
+    ``mass_centroid`` (:data:`subslope.render.populations.SHEET_CENTRES`), one name for
+    every plane or ``{"subhalos": ..., "los": ...}``.
     """
-    return _render(macro, psf, settings, sources, subhalos, los, smooth=False)
+    sheet = sheet_centre_pair(sheet_centre)
+    return _render(macro, psf, settings, sources, subhalos, los, smooth=False, sheet=sheet)

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from subslope.physics.pairs.registry import PAIR_PROFILES
-from subslope.physics.pairs.sums import member_table
+from subslope.physics.pairs.sums import member_table, moments_centroid, sheet_centroid
 from subslope.ragged import counts_to_offsets, pack_ragged
 from subslope.render.counters import count_step
 from subslope.render.kernels import FEW_MEMBERS, Kernels
@@ -28,6 +28,7 @@ from subslope.render.tiles import GridBlock
 __all__ = [
     "PAD_VALUES",
     "PROFILE_KEYS",
+    "SHEET_CENTRES",
     "Geometry",
     "Population",
     "flat_table",
@@ -60,11 +61,25 @@ PAD_VALUES = {key: value for p in PAIR_PROFILES.values() for key, value in p.pad
 @dataclass
 class Population:
     """A padded population of a sub-batch: its member table ``(b, M, N)``
-    (:func:`subslope.physics.pairs.sums.member_table`; padded members have zero amplitude)."""
+    (:func:`subslope.physics.pairs.sums.member_table`; padded members have zero amplitude)
+    and where its negative sheet is centred (:data:`SHEET_CENTRES`)."""
 
     profile: str
     table: Tensor
     counts: np.ndarray
+    sheet_centre: str = "origin"
+
+    def __post_init__(self) -> None:
+        if self.sheet_centre not in SHEET_CENTRES:
+            raise ValueError(
+                f"sheet_centre must be one of {SHEET_CENTRES}, got {self.sheet_centre!r}"
+            )
+
+
+#: Where a population's negative sheet is centred: ``origin`` (the plane's origin, the
+#: reference analysis) or ``mass_centroid`` (the κ-weighted centre of the population
+#: over the pixel-centre rays of its plane, :func:`subslope.physics.pairs.sums.sheet_centroid`).
+SHEET_CENTRES = ("origin", "mass_centroid")
 
 
 def profile_values(profile: str, flat: dict[str, np.ndarray]):
@@ -77,14 +92,20 @@ def profile_values(profile: str, flat: dict[str, np.ndarray]):
 
 
 def pack_population(
-    profile: str, flat: dict[str, np.ndarray], counts: np.ndarray, n_terms: int, dtype, device
+    profile: str,
+    flat: dict[str, np.ndarray],
+    counts: np.ndarray,
+    n_terms: int,
+    dtype,
+    device,
+    sheet_centre: str = "origin",
 ) -> Population:
     n_pad = max(1, int(counts.max()) if counts.size else 0)
     params = {}
     for key, vals in profile_values(profile, flat):
         arr, _ = pack_ragged(vals, counts=counts, n_max=n_pad, fill=PAD_VALUES[key])
         params[key] = torch.as_tensor(arr, dtype=dtype, device=device)
-    return Population(profile, member_table(profile, params, n_terms), counts)
+    return Population(profile, member_table(profile, params, n_terms), counts, sheet_centre)
 
 
 def flat_table(profile: str, flat: dict[str, np.ndarray], n_terms: int, dtype, device) -> Tensor:
@@ -125,13 +146,15 @@ def population_pass(
     geometry: Geometry | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Summed deflection at (x, y) ``(b, P_all)`` and the negative-sheet κ ``(b, 1)``
-    (minus the mean summed κ over the last ``n_pix`` points, the pixel-centre rays).
+    (minus the mean summed κ over the last ``n_pix`` points, the pixel-centre rays);
+    the sheet is centred as ``pop.sheet_centre`` says.
 
     With ``geometry`` and a population large enough (``settings.population``), the
     near/far split of :mod:`subslope.render.nearfar`; otherwise the direct sum in chunks of
     :func:`chunk_width` members.
     """
     n_all = x.shape[-1]
+    centroid = pop.sheet_centre == "mass_centroid"
     if use_split(pop, settings, geometry):
         count_step("split")
         out = split_pass(
@@ -148,13 +171,19 @@ def population_pass(
             base=geometry.base,
             kernels=(kernels.far, kernels.near, kernels.peaks),
             max_elements=settings.max_elements,
+            moments=centroid,
         )
         ax, ay, k_sum = out
+        if centroid:
+            k0, kx, ky = k_sum
+            cx, cy = moments_centroid(k0, kx, ky)
+            k_sheet = -(k0 / n_pix)
+            return ax + k_sheet * (x - cx), ay + k_sheet * (y - cy), k_sheet
         k_sheet = -(k_sum / n_pix)[:, None]
         return ax + k_sheet * x, ay + k_sheet * y, k_sheet
     n = pop.table.shape[-1]
     if n < FEW_MEMBERS and kernels.compiled:
-        return kernels.few_sheet(x, y, pop.table, pop.profile, n_pix)
+        return kernels.few_sheet(x, y, pop.table, pop.profile, n_pix, centroid)
     w = chunk_width(settings, n_all, kernels.compiled)
     ax = ay = kap = None
     for start in range(0, n, w):
@@ -166,6 +195,11 @@ def population_pass(
         else:
             ax, ay, kap = ax + dax, ay + day, kap + dk
     k_sheet = -(kap[:, n_all - n_pix :].sum(-1) / n_pix)[:, None]
+    if centroid:
+        cx, cy = sheet_centroid(
+            kap[:, n_all - n_pix :], x[:, n_all - n_pix :], y[:, n_all - n_pix :]
+        )
+        return ax + k_sheet * (x - cx), ay + k_sheet * (y - cy), k_sheet
     return ax + k_sheet * x, ay + k_sheet * y, k_sheet
 
 

@@ -198,7 +198,8 @@ def near_on_tiles(
     (:func:`subslope.physics.pairs.sums.near_tile_sums`) sees one ``(rows, TILE², ROW_SLOTS)``
     problem and padding costs at most one partial row per tile; the rows' sums are
     added into their tiles. ``tx_all, ty_all``: the block's rays as tiles
-    (:func:`_tiled`). Returns ``(ax, ay)`` ``(b, m²)`` and the κ sum ``(b,)``."""
+    (:func:`_tiled`). Returns ``(ax, ay, kappa)``, each ``(b, m²)``, and the κ sum
+    ``(b,)`` over every tile point (padding points included)."""
     b, n_rows, n = table.shape
     device, dtype = tx_all.device, tx_all.dtype
     nt = -(-m // TILE)
@@ -236,6 +237,7 @@ def near_on_tiles(
     return (
         _untiled(full[0], b, m, TILE),
         _untiled(full[1], b, m, TILE),
+        _untiled(full[2], b, m, TILE),
         full[2].reshape(b, -1).sum(1),
     )
 

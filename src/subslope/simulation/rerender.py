@@ -12,13 +12,9 @@ import torch
 from subslope.io import shards as _shards
 from subslope.physics.instrument import add_noise
 from subslope.simulation.los import LosPopulation
-from subslope.simulation.shard import (
-    _catalog,
-    _pixelated_sources,
-    _place,
-    _settings_from_json,
-    build_instrument,
-)
+from subslope.simulation.observing import build_instrument
+from subslope.simulation.shard import _settings_from_json
+from subslope.simulation.sources import catalog_at, pixelated_sources, place_source
 from subslope.simulation.subhalos import SubhaloPopulation
 
 __all__ = ["stored_inputs", "rerender", "smooth_models"]
@@ -29,7 +25,8 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
 
     ``cosmos``: COSMOS folder overriding the shard's ``cosmos_folder`` attribute.
     Returns ``macro``, ``sources`` (PixelatedSources or None), ``subhalos``, ``los``,
-    ``psf`` (tensor), ``settings``, ``noise_seed``, ``instrument``.
+    ``psf`` (tensor), ``settings``, ``noise_seed``, ``instrument`` and ``sheet_centre``
+    (shards written before the sheet centre was a choice: the origin).
     """
     a = shard.attrs
     settings = settings or _settings_from_json(a["render_settings"])
@@ -40,12 +37,20 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
     src = None
     if shard.sources:
         s = shard.sources
-        catalog = _catalog(str(cosmos if cosmos is not None else a["cosmos_folder"]))
+        where = cosmos if cosmos is not None else a["cosmos_folder"]
+        catalog = catalog_at(
+            tuple(str(f) for f in where) if isinstance(where, (list, tuple)) else str(where)
+        )
         stamps, pixs = [], []
         for i in idx:
             z_s = shard.params["z_source"][i]
-            sb, pix, _ = _place(
-                catalog, s["ident"][i], z_s, zp, s["mag"][i] if "mag" in s else None
+            sb, pix, _ = place_source(
+                catalog,
+                cfg["sources"],
+                s["ident"][i],
+                z_s,
+                zp,
+                s["mag"][i] if "mag" in s else None,
             )
             if not np.isclose(pix, s["pixel_scale"][i], rtol=1e-12):
                 raise _shards.ShardError(
@@ -54,7 +59,7 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
                 )
             stamps.append(sb)
             pixs.append(s["pixel_scale"][i])
-        src = _pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
+        src = pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
     subs = None
     if a["subhalo_profile"] != "none":
         subs = SubhaloPopulation(profile=a["subhalo_profile"], **shard.ragged("subhalos", idx))
@@ -72,6 +77,10 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
         "settings": settings,
         "noise_seed": shard.params["noise_seed"][idx],
         "instrument": inst,
+        "sheet_centre": {
+            "subhalos": a.get("sheet_centre_subhalos", "origin"),
+            "los": a.get("sheet_centre_los", "origin"),
+        },
     }
 
 
@@ -98,6 +107,7 @@ def rerender(
         sources=inp["sources"],
         subhalos=inp["subhalos"],
         los=inp["los"],
+        sheet_centre=inp["sheet_centre"],
     )[0]
     img = (
         add_noise(clean, int(inp["noise_seed"][0]), instrument=inp["instrument"])

@@ -51,14 +51,13 @@ __all__ = [
     "Scene",
     "preset",
     "scenes_from_config",
-    "resolved_scene",
-    "scene_multipliers",
-    "simulation_sections",
+    "merge_onto_preset",
 ]
 
 SUBHALO_PROFILES = ("epl", "nfw", "tnfw")
 LOS_PROFILES = ("epl", "nfw")
 PLACEMENTS = ("arc", "everywhere")
+SHEET_CENTRES = ("origin", "mass_centroid")  # as subslope.render.populations
 SOURCE_KINDS = ("cosmos", "sersic", "multi_sersic")
 #: Largest number of components of the multi-Sérsic source (the upper end of the
 #: ``source.multi_sersic.n_components`` support may not exceed it).
@@ -72,7 +71,7 @@ class SceneError(PriorError):
     """A scene configuration is malformed; the message names the config key."""
 
 
-def _load_presets() -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+def _load_presets() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     from importlib import resources as importlib_resources
 
     import yaml
@@ -81,12 +80,12 @@ def _load_presets() -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
         encoding="utf-8"
     )
     doc = yaml.safe_load(text)
-    return doc["paper_scene"], doc["presets"]
+    return doc["paper_scene"], doc["presets"], doc["lens_light_priors"]
 
 
-#: The training scene of the reference paper and the overrides of the named scenes
-#: (``schemas/scene_presets.yaml``, where each value is commented).
-PAPER_SCENE, PRESETS = _load_presets()
+#: The training scene of the reference paper, the overrides of the named scenes and the
+#: named lens-light priors (``schemas/scene_presets.yaml``, where each value is commented).
+PAPER_SCENE, PRESETS, LENS_LIGHT_PRIORS = _load_presets()
 
 
 def _is_prior(d: Any) -> bool:
@@ -114,6 +113,22 @@ def _merge(base: dict[str, Any], over: Mapping[str, Any], key: str) -> dict[str,
 def preset(name: str) -> dict[str, Any]:
     """Complete config mapping of the preset scene ``name`` (``train`` for other names)."""
     return _merge(PAPER_SCENE, PRESETS.get(name, {}), f"scenes.{name}")
+
+
+def merge_onto_preset(name: str, spec: Mapping[str, Any] | None, key: str) -> dict[str, Any]:
+    """The complete mapping of scene ``name``: ``spec`` merged onto its preset, after the
+    named lens-light prior ``spec.lens_light.prior`` (:data:`LENS_LIGHT_PRIORS`)."""
+    base = preset(name)
+    light = (spec or {}).get("lens_light") if isinstance(spec, Mapping) else None
+    if isinstance(light, Mapping) and "prior" in light:
+        named = light["prior"]
+        if named not in LENS_LIGHT_PRIORS:
+            raise SceneError(
+                f"config key {key}.lens_light.prior = {named!r}; allowed: "
+                f"{', '.join(sorted(LENS_LIGHT_PRIORS))}"
+            )
+        base["lens_light"].update(copy.deepcopy(LENS_LIGHT_PRIORS[named]))
+    return _merge(base, spec or {}, key)
 
 
 # ---------------------------------------------------------------------------- specs
@@ -314,7 +329,7 @@ class SubhaloSpec:
 
     ``gamma`` is the prior of the per-system label γ; per subhalo
     γ_i ~ N(γ, gamma_scatter·γ) truncated to ``gamma_bounds``. ``threshold_fraction`` is
-    used by ``placement='arc'`` only.
+    used by ``placement='arc'`` only; ``sheet_centre``: ``origin`` | ``mass_centroid``.
     """
 
     count: Prior
@@ -327,16 +342,18 @@ class SubhaloSpec:
     profile: str
     placement: str
     threshold_fraction: float
+    sheet_centre: str = "mass_centroid"
 
 
 @dataclass(frozen=True)
 class LosSpec:
-    """Line-of-sight halos: mass-function normalisation δ_los and profile."""
+    """Line-of-sight halos: δ_los, profile, mass range, sheet centre (as subhalos')."""
 
     delta_los: Prior
     profile: str
     m_min: float
     m_max: float
+    sheet_centre: str = "mass_centroid"
 
 
 @dataclass(frozen=True)
@@ -389,7 +406,7 @@ class Scene:
         key = key or f"scenes.{name}"
         if not isinstance(name, str) or not name:
             raise SceneError(f"scene name {name!r} must be a non-empty string")
-        d = _merge(preset(name), spec or {}, key)
+        d = merge_onto_preset(name, spec, key)
         comp = Components(
             **{k: _bool(v, f"{key}.components.{k}") for k, v in d["components"].items()}
         )
@@ -516,6 +533,7 @@ def _subhalo_spec(sub: Mapping[str, Any], k: str) -> SubhaloSpec:
         threshold_fraction=_real(
             sub["threshold_fraction"], f"{k}.threshold_fraction", 0.0, 1.0, True, True
         ),
+        sheet_centre=_choice(sub["sheet_centre"], SHEET_CENTRES, f"{k}.sheet_centre"),
     )
 
 
@@ -525,6 +543,7 @@ def _los_spec(lo_d: Mapping[str, Any], k: str) -> LosSpec:
         profile=_choice(lo_d["profile"], LOS_PROFILES, f"{k}.profile"),
         m_min=_real(lo_d["m_min"], f"{k}.m_min", 1e3, 1e15),
         m_max=_real(lo_d["m_max"], f"{k}.m_max", 1e3, 1e15),
+        sheet_centre=_choice(lo_d["sheet_centre"], SHEET_CENTRES, f"{k}.sheet_centre"),
     )
     if los.m_min >= los.m_max:
         raise SceneError(
@@ -556,44 +575,3 @@ def scenes_from_config(scenes: Mapping[str, Any] | None, key: str = "scenes") ->
         raise SceneError(f"config key {key}.{bad[0]} must be a mapping")
     names = list(PRESETS) + [n for n in scenes if n not in PRESETS]
     return {n: Scene.from_config(n, scenes.get(n) or {}, f"{key}.{n}") for n in names}
-
-
-# ------------------------------------------------------------------ scenes of a config
-def resolved_scene(config: Mapping[str, Any], name: str) -> tuple[Scene, dict[str, Any]]:
-    """The Scene ``name`` of the config and its complete spec (preset merged, JSON-able)."""
-    spec = (config.get("scenes") or {}).get(name) or {}
-    key = f"scenes.{name}"
-    merged = _merge(preset(name), spec, key)
-    return Scene.from_config(name, spec, key), merged
-
-
-def scene_multipliers(config: Mapping[str, Any], scene: Scene) -> tuple[float, ...] | None:
-    """Multipliers simulated for a CDM scene (None for scenes without concentrations)."""
-    if not scene.uses_concentration:
-        return None
-    mults = config["simulation"].get("multipliers")
-    return tuple(float(a) for a in (mults if mults else scene.concentration.multipliers))
-
-
-def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]:
-    """The config values that determine the images of a shard of ``scene`` (hashed).
-
-    ``config`` is validated first, so omitted keys count with their defaults."""
-    from subslope import config as _config
-
-    config = _config.validate(config)
-    _, spec = resolved_scene(config, scene)
-    sim = config["simulation"]
-    render = {k: v for k, v in sim["render"].items() if k not in ("batch_size", "device")}
-    return {
-        "seed": config["seed"],
-        "instrument": config["instrument"],
-        "cosmology": config["cosmology"],
-        "scene": spec,
-        "images_per_shard": sim["scenes"][scene]["images_per_shard"]
-        if scene in sim["scenes"]
-        else None,
-        "multipliers": sim["multipliers"],
-        "render": render,
-        "sources": sim["sources"],
-    }

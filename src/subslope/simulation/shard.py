@@ -27,7 +27,6 @@ re-sampled) — bit for bit on the same device and dtype.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import logging
 import math
@@ -44,18 +43,16 @@ from subslope import config as _config
 from subslope._version import __version__
 from subslope.devices import pick_device
 from subslope.io import shards as _shards
-from subslope.io.cosmos import (
-    CosmosCatalog,
-    CosmosCuts,
-    normalize_to_magnitude,
-    place_at_redshift,
-    split_idents,
-)
-from subslope.physics.instrument import Instrument, add_noise, gaussian_psf, load_empirical_psf
-from subslope.physics.light.pixelated import pad_stamps
+from subslope.physics.instrument import Instrument, add_noise
 from subslope.simulation import macro as _macro
 from subslope.simulation.los import LosConfig, LosPopulation, los_profiles, sample_los_batch
-from subslope.simulation.scenes import resolved_scene, scene_multipliers, simulation_sections
+from subslope.simulation.observing import build_instrument, build_psf
+from subslope.simulation.resolve import resolved_scene, scene_multipliers, simulation_sections
+from subslope.simulation.sources import (
+    cosmos_folders,
+    draw_sources,
+    pixelated_sources,
+)
 from subslope.simulation.subhalos import SubhaloPopulation, sample_subhalos
 
 __all__ = [
@@ -65,9 +62,9 @@ __all__ = [
     "build_psf",
     "build_instrument",
     "render_settings",
-    "source_split",
     "simulate_images",
     "simulate_shard",
+    "sheet_centres",
 ]
 
 log = logging.getLogger(__name__)
@@ -94,41 +91,6 @@ def shard_seed_sequence(
 
 
 # ------------------------------------------------------------------------- set-up
-
-
-def build_instrument(config: Mapping[str, Any]) -> Instrument:
-    inst = config["instrument"]
-    return Instrument(
-        exposure_time=float(inst["exposure_time"]),
-        ccd_gain=float(inst["ccd_gain"]),
-        read_noise=float(inst["read_noise"]),
-        sky_brightness=float(inst["sky_brightness"]),
-        magnitude_zero_point=float(inst["zero_point"]),
-        num_exposures=int(inst["num_exposures"]),
-        pixel_scale=float(inst["pixel_scale"]),
-        psf_fwhm=float(inst["psf"]["fwhm"]),
-    )
-
-
-def build_psf(
-    config: Mapping[str, Any], *, resources_dir: str | os.PathLike[str] | None = None
-) -> np.ndarray:
-    """PSF kernel (float64, sum 1) from ``instrument.psf``: the empirical file under the
-    resources folder, or the Gaussian fallback."""
-    inst = config["instrument"]
-    psf = inst["psf"]
-    if psf["source"] == "gaussian":
-        return gaussian_psf(psf["fwhm"], inst["pixel_scale"], dtype=torch.float64).numpy()
-    folder = Path(resources_dir if resources_dir is not None else config["data"]["resources_dir"])
-    path = folder / psf["file"]
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"PSF file {path} (instrument.psf.file under data.resources_dir) not found"
-        )
-    which = "mean" if psf["index"] is None else int(psf["index"])
-    return load_empirical_psf(
-        path, which, supersampling=int(psf["supersampling"]), dtype=torch.float64
-    ).numpy()
 
 
 def render_settings(config: Mapping[str, Any]):
@@ -164,77 +126,6 @@ def _settings_from_json(d: Mapping[str, Any], device: str | None = None):
     return RenderSettings(**kw)
 
 
-@functools.lru_cache(maxsize=8)
-def _catalog(folder: str) -> CosmosCatalog:
-    return CosmosCatalog.load(folder)
-
-
-def cosmos_folder(config: Mapping[str, Any]) -> Path:
-    return Path(config["data"]["resources_dir"]) / config["simulation"]["sources"]["folder"]
-
-
-def source_split(config: Mapping[str, Any], split: str) -> tuple[CosmosCatalog, np.ndarray]:
-    """The COSMOS catalogue (after cuts) and the IDENTs of ``split``."""
-    src = config["simulation"]["sources"]
-    catalog = _catalog(str(cosmos_folder(config)))
-    c = src["cuts"]
-    selected = catalog.select(
-        CosmosCuts(
-            c["mag_max"],
-            c["min_stamp_side"],
-            c["min_flux_radius"],
-            c["zphot_max"],
-            tuple(c.get("exclude", ())),
-        )
-    )
-    s = src["split"]
-    if s.get("ids"):
-        ids = np.asarray(s["ids"].get(split, []), dtype=np.int64)
-        missing = ids[~np.isin(ids, selected.idents)]
-        if missing.size:
-            raise ValueError(
-                f"config key simulation.sources.split.ids.{split}: IDENT(s) {missing.tolist()} "
-                "are not among the selected COSMOS galaxies"
-            )
-    else:
-        ids = split_idents(
-            selected.idents, {k: s[k] for k in ("train", "validation", "test")}, s["salt"]
-        )[split]
-    if ids.size == 0:
-        raise ValueError(f"the COSMOS split {split!r} is empty (simulation.sources.split)")
-    return selected, ids
-
-
-def _place(
-    catalog: CosmosCatalog, ident: int, z_source: float, zero_point: float, mag: float | None
-):
-    row = catalog.table.loc[catalog.table["ident"] == int(ident)].iloc[0]
-    sb, pix = place_at_redshift(
-        catalog.stamp(int(ident)),
-        float(row["pixel_scale"]),
-        float(row["zphot"]),
-        float(z_source),
-        zero_point_out=zero_point,
-    )
-    if mag is not None and np.isfinite(mag):
-        sb = normalize_to_magnitude(sb, pix, float(mag), zero_point)
-    return sb, pix, float(row["zphot"])
-
-
-def _pixelated_sources(stamps: Sequence[np.ndarray], pixel_scales, pad_shape, settings):
-    """PixelatedSources padded to the fixed ``pad_shape`` (so an image does not depend on
-    which other stamps share its batch)."""
-    from subslope.render.pipeline import PixelatedSources
-
-    filler = np.zeros(tuple(int(v) for v in pad_shape))
-    padded, offsets = pad_stamps(list(stamps) + [filler], dtype=settings.dtype, device="cpu")
-    return PixelatedSources(
-        stamps=padded[:-1],
-        offsets=offsets[:-1],
-        pixel_scale=np.asarray(pixel_scales, dtype=np.float64),
-    )
-
-
 def _concat_subhalos(pops: Sequence[SubhaloPopulation]) -> SubhaloPopulation:
     first = pops[0]
     kw = {"profile": first.profile}
@@ -265,38 +156,6 @@ def _pop_arrays(pop) -> dict[str, np.ndarray]:
 
 
 # ------------------------------------------------------------------------- simulation
-def _draw_sources(
-    config: Mapping[str, Any],
-    sc,
-    macro: Mapping[str, np.ndarray],
-    rng: np.random.Generator,
-    zero_point: float,
-) -> tuple[dict[str, np.ndarray], list[np.ndarray], tuple[int, int] | None]:
-    """One COSMOS galaxy per image (uniform over the scene's split), placed at its
-    z_source: ``(per-image source records, stamps, padded stamp shape)``; nothing for a
-    parametric source."""
-    n = len(macro["z_source"])
-    if sc.source.kind != "cosmos":
-        return {}, [], None
-    catalog, ids = source_split(config, sc.source.split)
-    pick = ids[rng.integers(0, ids.size, n)]
-    renorm = config["simulation"]["sources"]["mag_renormalize"]
-    mags = rng.uniform(renorm[0], renorm[1], n) if renorm else None
-    pix = np.empty(n)
-    zphot = np.empty(n)
-    stamps = []
-    for i in range(n):
-        sb, pix[i], zphot[i] = _place(
-            catalog, pick[i], macro["z_source"][i], zero_point, None if mags is None else mags[i]
-        )
-        stamps.append(sb)
-    pad_shape = (int(catalog.table["ny"].max()), int(catalog.table["nx"].max()))
-    sources = {"ident": pick.astype(np.int64), "z_phot": zphot, "pixel_scale": pix}
-    if mags is not None:
-        sources["mag"] = mags
-    return sources, stamps, pad_shape
-
-
 @dataclasses.dataclass
 class _Draws:
     """The per-image random streams of a shard and what the populations need."""
@@ -378,7 +237,7 @@ def _simulate_batch(job: _Job, sl: slice) -> None:
     m_b = {k: v[sl] for k, v in job.macro.items()}
     src_b = None
     if job.stamps:
-        src_b = _pixelated_sources(
+        src_b = pixelated_sources(
             job.stamps[sl], job.sources["pixel_scale"][sl], job.pad_shape, settings
         )
     t = time.perf_counter()
@@ -392,7 +251,15 @@ def _simulate_batch(job: _Job, sl: slice) -> None:
     job.los_pops += [lpop] if lpop is not None else []
     timing["sampling"] += time.perf_counter() - t
     t = time.perf_counter()
-    clean = render(m_b, job.psf, settings, sources=src_b, subhalos=subs, los=lpop)
+    clean = render(
+        m_b,
+        job.psf,
+        settings,
+        sources=src_b,
+        subhalos=subs,
+        los=lpop,
+        sheet_centre=sheet_centres(sc),
+    )
     timing["render"] += time.perf_counter() - t
     t = time.perf_counter()
     _observe(job.images, clean, idx, job.noise_seed, job.inst)
@@ -428,7 +295,7 @@ def simulate_images(
     inst = build_instrument(config)
     zero_point = float(config["instrument"]["zero_point"])
     src_rng = np.random.default_rng(streams["sources"])
-    sources, stamps, pad_shape = _draw_sources(config, sc, macro, src_rng, zero_point)
+    sources, stamps, pad_shape = draw_sources(config, sc, macro, src_rng, zero_point)
     timing = dict.fromkeys(("setup", "smooth", "sampling", "render", "noise"), 0.0)
     timing["setup"] = time.perf_counter() - t0
     inst_cfg = config["instrument"]
@@ -453,14 +320,7 @@ def simulate_images(
         images,
         timing,
     )
-    bs = int(config["simulation"]["render"]["batch_size"])
-    bar = _progress_bar(n, scene) if progress else None
-    for start in range(0, n, bs):
-        _simulate_batch(job, slice(start, min(start + bs, n)))
-        if bar is not None:
-            bar.update(min(start + bs, n) - start)
-    if bar is not None:
-        bar.close()
+    _run_batches(job, n, int(config["simulation"]["render"]["batch_size"]), scene, progress)
     params = dict(macro)
     params["noise_seed"] = noise_seed
     comp = sc.components
@@ -478,7 +338,23 @@ def simulate_images(
         "pad_shape": pad_shape,
         "subhalo_profile": sc.subhalos.profile if comp.subhalos else "none",
         "los_profile": sc.los.profile if comp.los else "none",
+        "sheet_centre": sheet_centres(sc),
     }
+
+
+def _run_batches(job: _Job, n: int, bs: int, scene: str, progress: bool) -> None:
+    bar = _progress_bar(n, scene) if progress else None
+    for start in range(0, n, bs):
+        _simulate_batch(job, slice(start, min(start + bs, n)))
+        if bar is not None:
+            bar.update(min(start + bs, n) - start)
+    if bar is not None:
+        bar.close()
+
+
+def sheet_centres(sc) -> dict[str, str]:
+    """The renderer's ``sheet_centre`` of a scene: ``{"subhalos": ..., "los": ...}``."""
+    return {"subhalos": sc.subhalos.sheet_centre, "los": sc.los.sheet_centre}
 
 
 def _observe(images: np.ndarray, clean, idx: range, noise_seed: np.ndarray | None, inst) -> None:
@@ -536,9 +412,11 @@ def simulate_shard(
         "render_settings": _settings_to_json(out["settings"]),
         "subhalo_profile": out["subhalo_profile"],
         "los_profile": out["los_profile"],
+        "sheet_centre_subhalos": out["sheet_centre"]["subhalos"],
+        "sheet_centre_los": out["sheet_centre"]["los"],
         "shard_index": int(shard),
         "multiplier": None if multiplier is None else float(multiplier),
-        "cosmos_folder": str(cosmos_folder(config)) if out["sources"] else "",
+        "cosmos_folder": [str(f) for f in cosmos_folders(config)] if out["sources"] else "",
         "source_pad_shape": list(out["pad_shape"]) if out["pad_shape"] else [],
     }
     t = time.perf_counter()

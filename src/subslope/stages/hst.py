@@ -44,6 +44,7 @@ def analyze_hst(
     device: str = "auto",
     nfw_scene: str = "nfw",
     tnfw_scene: str | None = "tnfw",
+    domain_csv=None,
 ):
     """Profiles, intervals and figures 5–6 of the real HST lenses.
 
@@ -53,7 +54,8 @@ def analyze_hst(
     ``combine`` systems (default all) uses τ_N, N = their number. Writes ``out_h5``
     (names, log_ratio, gammas, theta_e, lens_x, lens_y, combined), ``out_csv`` (one row per
     system and one ``combined`` row: mle, lower, upper, threshold, threshold_n, flags) and
-    the figures; the a = 1 NFW/tNFW bands of figure 6 come from ``cdm_csv`` when given.
+    the figures; figure 6's a = 1 bands come from ``cdm_csv``, the columns
+    ``inside_domain``, ``outside_domain`` from the domain check's ``domain_csv``.
     """
     import pandas as pd
 
@@ -80,7 +82,7 @@ def analyze_hst(
     rows.append(
         _row("combined", combined, g, tau_c, len(idx), n_c, dict.fromkeys(geometry, np.nan))
     )
-    table = pd.DataFrame(rows)
+    table = _with_domain_flags(pd.DataFrame(rows), domain_csv)
     write_text(out_csv, table.to_csv(index=False))
     _write_h5(out_h5, names, prof, g, geometry, combined, combine, run_name, model_path)
     source = f"estimator {meta.get('config_hash', '')}"
@@ -100,6 +102,24 @@ def analyze_hst(
         highlight=tuple(highlight),
         n_images=len(idx),
     )
+    return table
+
+
+def _with_domain_flags(table, domain_csv):
+    """``table`` with the domain check's ``inside`` / ``outside`` per system (the
+    combined row: inside when every stacked system is)."""
+    import pandas as pd
+
+    if not domain_csv:
+        return table
+    dom = pd.read_csv(domain_csv, keep_default_na=False)
+    inside = dict(zip(dom["system"], dom["inside"].astype(str).str.lower() == "true", strict=True))
+    outside = dict(zip(dom["system"], dom["outside"], strict=True))
+    table = table.copy()
+    table["inside_domain"] = [inside.get(s, False) for s in table["system"]]
+    table["outside_domain"] = [outside.get(s, "") for s in table["system"]]
+    singles = table["system"] != "combined"
+    table.loc[~singles, "inside_domain"] = bool(table.loc[singles, "inside_domain"].all())
     return table
 
 

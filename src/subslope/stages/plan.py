@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from subslope import config as _config
-from subslope.simulation.scenes import resolved_scene, scene_multipliers
+from subslope.simulation.resolve import resolved_scene, scene_multipliers
 
 __all__ = [
     "SHARD_DIR",

@@ -71,6 +71,7 @@ def _md_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
 #: Section headings of summary.md, in order.
 SUMMARY_SECTIONS = (
     "Configuration",
+    "Simulations against the data",
     "HST measurement",
     "CDM predictions (a = 1)",
     "Calibration and coverage",
@@ -133,8 +134,31 @@ def _hst_section(folder: Path, hst_csv) -> list[str]:
         f"(68% interval [{row['lower']:.3f}, {row['upper']:.3f}])"
         + (f"; {'; '.join(note)}" if note else "")
         + ".\n",
-        _md_table(singles, ["system", "mle", "lower", "upper", "lower_at_edge", "upper_at_edge"]),
+        _md_table(
+            singles,
+            ["system", "mle", "lower", "upper", "lower_at_edge", "upper_at_edge"]
+            + (["inside_domain"] if "inside_domain" in hst.columns else []),
+        ),
     ]
+
+
+def _domain_section(domain_csv) -> list[str]:
+    """How many HST lenses lie inside the simulated distribution of every statistic."""
+    import pandas as pd
+
+    if not domain_csv:
+        return ["Stage `domain` not run: nothing shows that the simulations cover the data.\n"]
+    table = pd.read_csv(domain_csv, keep_default_na=False)
+    inside = table["inside"].astype(str).str.lower() == "true"
+    out = table.loc[~inside, ["system", "outside"]].to_dict("records")
+    lines = [
+        f"{int(inside.sum())} of {len(table)} HST lenses lie inside the simulated 1–99% "
+        "range of every statistic (results/check_domain/domain_check.csv, "
+        "figures/domain_check.png).\n"
+    ]
+    if out:
+        lines.append(_md_table(out, ["system", "outside"]))
+    return lines
 
 
 def _cdm_section(folder: Path, cdm_csv, scenes: Sequence[str | None]) -> list[str]:
@@ -224,6 +248,7 @@ def write_summary(
     hst_csv=None,
     cdm_csv=None,
     calibration_csv=None,
+    domain_csv=None,
     trend: Mapping[str, float] | None = None,
     benchmarks: Mapping[str, Sequence] | None = None,
     nfw_scene: str = "nfw",
@@ -240,6 +265,7 @@ def write_summary(
         items.append(f"- config file(s): `{config_file}`")
     sections = [
         ["\n".join(items) + "\n"],
+        _domain_section(domain_csv),
         _hst_section(folder, hst_csv),
         _cdm_section(folder, cdm_csv, (nfw_scene, tnfw_scene)),
         _calibration_section(folder, calibration_csv),

@@ -167,9 +167,21 @@ def _image_planes(g: Mapping[str, float], i: int, subhalos, los, epl: str) -> _P
     return p
 
 
-def _lens_model(p: _Planes, zs: float, tx: np.ndarray, ty: np.ndarray, sheets: bool):
+def _set_sheet(kw: dict, kap: np.ndarray, px: np.ndarray, py: np.ndarray, centre: str) -> None:
+    """A plane's sheet: κ = −mean member κ at its rays ``px, py``, centred at the origin
+    or (``mass_centroid``) at the κ-weighted centre of those rays."""
+    kw["kappa"] = -float(np.mean(kap))
+    if centre == "mass_centroid" and np.sum(kap) > 0:
+        kw["ra_0"] = float(np.sum(kap * px) / np.sum(kap))
+        kw["dec_0"] = float(np.sum(kap * py) / np.sum(kap))
+
+
+def _lens_model(
+    p: _Planes, zs: float, tx: np.ndarray, ty: np.ndarray, sheets: bool, centre: str = "origin"
+):
     """The lenstronomy LensModel; with ``sheets``, each plane's sheet set to minus the mean
-    member convergence at the pixel-centre rays on that plane (lenstronomy's own tracing)."""
+    member convergence at the pixel-centre rays on that plane (lenstronomy's own tracing),
+    centred as ``centre`` says (:func:`_set_sheet`)."""
     from astropy.cosmology import Planck18
     from lenstronomy.LensModel.lens_model import LensModel
 
@@ -178,7 +190,7 @@ def _lens_model(p: _Planes, zs: float, tx: np.ndarray, ty: np.ndarray, sheets: b
         z, main, sheet = p.planes[0]
         if main and sheets:
             kap = LensModel([models[j] for j in main]).kappa(tx, ty, [kw[j] for j in main])
-            kw[sheet]["kappa"] = -float(np.mean(kap))
+            _set_sheet(kw[sheet], kap, tx, ty, centre)
         return LensModel(models)
     lm = LensModel(
         models,
@@ -196,7 +208,7 @@ def _lens_model(p: _Planes, zs: float, tx: np.ndarray, ty: np.ndarray, sheets: b
             tz = mpb._cosmo_bkg.T_xy(0.0, z)
             px, py = (cx + ax * dt) / tz, (cy + ay * dt) / tz
             kap = LensModel([models[j] for j in on_plane]).kappa(px, py, [kw[j] for j in on_plane])
-            kw[sheet]["kappa"] = -float(np.mean(kap))
+            _set_sheet(kw[sheet], kap, px, py, centre)
         cx, cy, ax, ay = mpb.ray_shooting_partial_comoving(
             cx, cy, ax, ay, z_prev, z, kw, include_z_start=False
         )
@@ -243,6 +255,7 @@ def lenstronomy_model(
     sheets: bool = True,
     epl: str = "EPL_NUMBA",
     supersampling: int = 1,
+    sheet_centre: str = "origin",
 ) -> LenstronomyImage:
     """lenstronomy 1.14.2 model of image ``i`` with exactly its parameters.
 
@@ -251,7 +264,7 @@ def lenstronomy_model(
     (:class:`subslope.simulation.subhalos.SubhaloPopulation`,
     :class:`subslope.simulation.los.LosPopulation`); ``sheets``: each plane's negative
     sheet, computed by lenstronomy (off: a diagnostic); ``epl``: lenstronomy's EPL model
-    (``EPL_NUMBA`` or ``EPL``).
+    (``EPL_NUMBA`` or ``EPL``); ``sheet_centre``: ``origin`` or ``mass_centroid``.
     """
     from lenstronomy.Data.imaging_data import ImageData
     from lenstronomy.Data.psf import PSF as LPSF
@@ -262,7 +275,7 @@ def lenstronomy_model(
     planes = _image_planes(g, i, subhalos, los, epl)
     x = (np.arange(npix) - (npix - 1) / 2) * pixel_scale
     xx, yy = np.meshgrid(x, x)
-    lm = _lens_model(planes, g["z_source"], xx.ravel(), yy.ravel(), sheets)
+    lm = _lens_model(planes, g["z_source"], xx.ravel(), yy.ravel(), sheets, sheet_centre)
     src, light = _sersic_kwargs(g)
     kwargs = {"kwargs_lens": planes.kw, "kwargs_source": [src]}
     if light is not None:

@@ -30,6 +30,7 @@ SERSIC_ELLIPSE source, PIXEL PSF).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,6 +71,7 @@ class StiffCase:
     kappa_max: float
     kappa_sheet: float
     kappa_total_mean: float
+    sheet_centre: str = "origin"
 
 
 @contextlib.contextmanager
@@ -78,7 +80,7 @@ def sheet_off():
     orig = R.population_pass
 
     def no_sheet(pop, x, y, *args, **kwargs):
-        ax, ay, k = orig(pop, x, y, *args, **kwargs)
+        ax, ay, k = orig(dataclasses.replace(pop, sheet_centre="origin"), x, y, *args, **kwargs)
         return ax - k * x, ay - k * y, torch.zeros_like(k)
 
     R.population_pass = no_sheet
@@ -136,7 +138,7 @@ def _cosmos_sources(macro, folder, seed):
     return R.PixelatedSources(stamps=st, pixel_scale=np.asarray([ps]), offsets=off)
 
 
-def _case_numbers(geo, label, img, gamma, sheet, kap) -> StiffCase:
+def _case_numbers(geo, label, img, gamma, sheet, kap, sheet_centre="origin") -> StiffCase:
     """The row of one stiff case: arc, centre and total flux relative to the smooth model
     (``geo = (smooth, arc mask, centre slices, N_sub)``) and the summed subhalo κ with its
     sheet."""
@@ -156,6 +158,7 @@ def _case_numbers(geo, label, img, gamma, sheet, kap) -> StiffCase:
         float(kap.max()) if kap is not None else 0.0,
         ks,
         km + ks,
+        sheet_centre,
     )
 
 
@@ -166,6 +169,7 @@ def stiff_cases(
     n_sub: int = 1500,
     gammas=(2.5, 1.2),
     sheets=(True, False),
+    centres=("origin",),
     source: str = "sersic",
     cosmos_folder=None,
     settings: R.RenderSettings | None = None,
@@ -176,6 +180,8 @@ def stiff_cases(
     ``arc_mask``, ``macro``, ``subhalos`` (γ → population) and ``centre`` (row, col slices).
 
     ``source``: 'sersic' | 'multi_sersic' | 'cosmos' (a galaxy of ``cosmos_folder``).
+    ``centres``: sheet centres rendered for every sheet-on case (``origin`` |
+    ``mass_centroid``; labels of non-origin cases name the centre).
     ``macro`` overrides the drawn system (one system, keys as :func:`stiff_system`).
     """
     settings = settings or R.RenderSettings(device="cpu", dtype=torch.float64, compile="off")
@@ -210,18 +216,21 @@ def stiff_cases(
         )
         pops[gam] = subs
         kap = summed_subhalo_kappa(subs, n, d)
-        for sheet in sheets:
+        for sheet, where in [(s, c) for s in sheets for c in (centres if s else ("origin",))]:
             ctx = contextlib.nullcontext() if sheet else sheet_off()
             with ctx:
                 img = (
-                    R.render(m, psf, settings, sources=sources, subhalos=subs)[0]
+                    R.render(m, psf, settings, sources=sources, subhalos=subs, sheet_centre=where)[
+                        0
+                    ]
                     .cpu()
                     .numpy()
                     .astype(np.float64)
                 )
             label = f"γ = {gam:g}, N_sub = {n_sub}, sheet {'on' if sheet else 'off'}"
+            label += f" at {where.replace('_', ' ')}" if where != "origin" else ""
             images[label] = img
-            cases.append(_case_numbers(geo, label, img, float(gam), sheet, kap))
+            cases.append(_case_numbers(geo, label, img, float(gam), sheet, kap, where))
     return {
         "images": images,
         "cases": cases,

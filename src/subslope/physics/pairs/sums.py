@@ -49,6 +49,8 @@ __all__ = [
     "direct_sums",
     "direct_sums_few",
     "few_sums_with_sheet",
+    "moments_centroid",
+    "sheet_centroid",
     "far_sums",
     "near_tile_sums",
     "circle_peaks",
@@ -107,13 +109,40 @@ def direct_sums_few(x: Tensor, y: Tensor, table: Tensor, profile: str, with_kapp
     return ax.sum(1), ay.sum(1), (k.sum(1) if with_kappa else None)
 
 
-def few_sums_with_sheet(x: Tensor, y: Tensor, table: Tensor, profile: str, n_pix: int):
+def few_sums_with_sheet(
+    x: Tensor, y: Tensor, table: Tensor, profile: str, n_pix: int, centroid: bool = False
+):
     """:func:`direct_sums_few` plus the population's negative sheet in one graph:
     ``κ_s = −mean(Σ_i κ_i)`` over the last ``n_pix`` points (the pixel-centre rays),
-    returned as ``(alpha_x + κ_s x, alpha_y + κ_s y, κ_s)`` with ``κ_s`` ``(b, 1)``."""
+    returned as ``(alpha_x + κ_s (x − c_x), alpha_y + κ_s (y − c_y), κ_s)`` with ``κ_s``
+    ``(b, 1)``. The sheet centre ``c`` is the origin, or with ``centroid`` the κ-weighted
+    centre of the population over those points (:func:`sheet_centroid`)."""
     ax, ay, k = direct_sums_few(x, y, table, profile, True)
-    ks = -(k[:, k.shape[1] - n_pix :].sum(-1, keepdim=True) / n_pix)
-    return ax + ks * x, ay + ks * y, ks
+    kp = k[:, k.shape[1] - n_pix :]
+    ks = -(kp.sum(-1, keepdim=True) / n_pix)
+    if not centroid:
+        return ax + ks * x, ay + ks * y, ks
+    cx, cy = sheet_centroid(kp, x[:, x.shape[1] - n_pix :], y[:, y.shape[1] - n_pix :])
+    return ax + ks * (x - cx), ay + ks * (y - cy), ks
+
+
+def sheet_centroid(kappa: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """κ-weighted centre ``c = Σ_p κ_p x_p / Σ_p κ_p`` of a population over points ``p``
+    (arcsec, each ``(b, 1)``; ``kappa`` ``(b, P)``, ``x, y`` ``(b|1, P)``). A population
+    with no convergence there (``Σ κ = 0``) gets the origin."""
+    return moments_centroid(
+        kappa.sum(-1, keepdim=True),
+        (kappa * x).sum(-1, keepdim=True),
+        (kappa * y).sum(-1, keepdim=True),
+    )
+
+
+def moments_centroid(k0: Tensor, kx: Tensor, ky: Tensor) -> tuple[Tensor, Tensor]:
+    """``(kx / k0, ky / k0)`` where ``k0 > 0``, else 0 (no NaN for an empty population)."""
+    ok = k0 > 0
+    safe = torch.where(ok, k0, torch.ones_like(k0))
+    zero = torch.zeros_like(k0)
+    return torch.where(ok, kx / safe, zero), torch.where(ok, ky / safe, zero)
 
 
 def far_sums(x: Tensor, y: Tensor, table: Tensor, profile: str, inv_rc2: Tensor):

@@ -1,0 +1,271 @@
+"""PSF-convolved elliptical Sérsic fit of a lens galaxy's light, many images at once.
+
+Model of one image (e⁻/s per pixel): the elliptical Sérsic of
+:func:`subslope.physics.light.sersic.sersic_ellipse_from_magnitude` at the pixel centres
+(× pixel area, as the renderer draws the lens light), convolved with the PSF
+(:func:`subslope.physics.instrument.convolve`). Parameters per image::
+
+    θ = (mag, ln R_s, n, e1, e2, x, y, b)   (AB mag, ln arcsec, -, -, -, arcsec, arcsec, e⁻/s)
+
+with ``b`` a constant pedestal per pixel (what sky subtraction may have left; fitted only
+with ``pedestal=True``: on simulated lenses, which have none, it trades against the
+Sérsic wings and biases mag and R_s, see docs/simulation.md).
+Fit: weighted least squares, χ² = Σ_p w_p (d_p − m_p(θ))², with w_p = mask_p / σ_p² and
+σ_p² = σ_bg² + max(d_p, 0) / t + (s·max(d_p, 0))² (background, the data's Poisson term
+and a model-error floor ``s`` = ``systematic``, so that a real galaxy's departures from
+one Sérsic in its bright core do not dominate). The arcs are masked: an annulus
+``arc_mask`` × θ_E about the lens centre is left out, and after a first fit the pixels
+more than ``clip`` σ above the model (the rest of the arcs, other galaxies) are masked
+too (dilated by one pixel) before the fit is repeated.
+
+Solver: Levenberg–Marquardt (Marquardt 1963) with the Jacobian by forward differences,
+all images of a batch stepped together, each with its own damping λ; parameters are
+kept in their box (:data:`BOUNDS`) after every step. float64 throughout.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from subslope.physics.grid import pixel_grid
+from subslope.physics.instrument import ZERO_POINT, convolve
+from subslope.physics.light.sersic import e1e2_to_q_phi, sersic_ellipse_from_magnitude
+
+__all__ = ["BOUNDS", "PARAMS", "LightFit", "sersic_model", "fit_lens_light", "prior_from_fits"]
+
+#: Fitted parameters, in the order of θ.
+PARAMS = ("mag", "ln_r", "n", "e1", "e2", "x", "y", "b")
+#: Box of each parameter (the centre's is relative to its starting value).
+BOUNDS = {
+    "mag": (5.0, 35.0),
+    "ln_r": (math.log(0.02), math.log(20.0)),
+    "n": (0.3, 10.0),
+    "e1": (-0.8, 0.8),
+    "e2": (-0.8, 0.8),
+    "x": (-0.3, 0.3),
+    "y": (-0.3, 0.3),
+    "b": (-0.05, 0.05),
+}
+_STEPS = torch.tensor([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-5, 1e-6], dtype=torch.float64)
+
+
+@dataclass
+class LightFit:
+    """Fitted lens light of ``B`` images (arrays ``(B,)``) and its model ``(B, H, W)``.
+
+    ``mag`` (AB), ``r_sersic`` (arcsec), ``n_sersic``, ``e1``, ``e2``, ``q`` (axis ratio),
+    ``x``, ``y`` (arcsec), ``background`` (e⁻/s per pixel), ``chi2_dof`` (χ² per unmasked
+    pixel), ``mask`` (pixels used,
+    ``(B, H, W)`` bool), ``model`` and ``sigma`` (the σ_p map, e⁻/s)."""
+
+    mag: np.ndarray
+    r_sersic: np.ndarray
+    n_sersic: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    q: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    background: np.ndarray
+    chi2_dof: np.ndarray
+    mask: np.ndarray
+    model: np.ndarray
+    sigma: np.ndarray
+
+
+def sersic_model(theta: torch.Tensor, grid, psf: torch.Tensor, pixel_scale: float) -> torch.Tensor:
+    """PSF-convolved Sérsic images plus pedestal, ``(B, H, W)``, of ``theta`` ``(B, 8)``."""
+    xs, ys = grid
+    p = [theta[:, k, None, None] for k in range(8)]
+    sb = sersic_ellipse_from_magnitude(
+        xs, ys, p[0], torch.exp(p[1]), p[2], p[3], p[4], p[5], p[6], zero_point=ZERO_POINT
+    )
+    return convolve(sb * pixel_scale**2, psf) + p[7]
+
+
+def _clamp(theta: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+    lo = torch.tensor([BOUNDS[k][0] for k in PARAMS], dtype=theta.dtype)
+    hi = torch.tensor([BOUNDS[k][1] for k in PARAMS], dtype=theta.dtype)
+    lo = lo.expand_as(theta).clone()
+    hi = hi.expand_as(theta).clone()
+    lo[:, 5:7] += start[:, 5:7]
+    hi[:, 5:7] += start[:, 5:7]
+    out = torch.minimum(torch.maximum(theta, lo), hi)
+    e = torch.hypot(out[:, 3], out[:, 4])
+    shrink = torch.clamp(0.8 / torch.clamp(e, min=1e-12), max=1.0)
+    out[:, 3] *= shrink
+    out[:, 4] *= shrink
+    return out
+
+
+def _chi2(model, data, weight) -> torch.Tensor:
+    return ((data - model) ** 2 * weight).sum((-2, -1))
+
+
+def _lm(theta, data, weight, grid, psf, pixel_scale, iterations: int, free: torch.Tensor):
+    """Levenberg–Marquardt steps of every image of the batch (module docstring); only the
+    parameters ``free`` move."""
+    start = theta.clone()
+    lam = torch.full((theta.shape[0],), 1e-2, dtype=theta.dtype)
+    model = sersic_model(theta, grid, psf, pixel_scale)
+    chi2 = _chi2(model, data, weight)
+    b = theta.shape[0]
+    idx = torch.nonzero(free).reshape(-1).tolist()
+    npar = len(idx)
+    for _ in range(iterations):
+        cols = []
+        for k in idx:
+            t = theta.clone()
+            t[:, k] += _STEPS[k]
+            cols.append(
+                ((sersic_model(t, grid, psf, pixel_scale) - model) / _STEPS[k]).reshape(b, -1)
+            )
+        jac = torch.stack(cols, -1)  # (B, P, free parameters)
+        w = weight.reshape(b, -1, 1)
+        a = (jac * w).transpose(1, 2) @ jac
+        g = ((jac * w).transpose(1, 2) @ (data - model).reshape(b, -1, 1))[..., 0]
+        diag = torch.diagonal(a, dim1=1, dim2=2).clamp(min=1e-12)
+        step = torch.linalg.solve(a + (lam[:, None] * diag)[:, :, None] * torch.eye(npar), g)
+        full = torch.zeros_like(theta)
+        full[:, idx] = step
+        trial = _clamp(theta + full, start)
+        m_trial = sersic_model(trial, grid, psf, pixel_scale)
+        c_trial = _chi2(m_trial, data, weight)
+        better = torch.isfinite(c_trial) & (c_trial < chi2)
+        theta = torch.where(better[:, None], trial, theta)
+        model = torch.where(better[:, None, None], m_trial, model)
+        chi2 = torch.where(better, c_trial, chi2)
+        lam = torch.where(better, lam / 3.0, lam * 4.0).clamp(1e-9, 1e9)
+    return theta, model, chi2
+
+
+def _start(data, grid, centres, pixel_scale: float) -> torch.Tensor:
+    """Starting θ: magnitude of the flux within 2″, R_s = 1″, n = 3, round, at ``centres``."""
+    xs, ys = grid
+    r = torch.hypot(xs - centres[:, 0, None, None], ys - centres[:, 1, None, None])
+    flux = (data * (r < 2.0)).sum((-2, -1)).clamp(min=1e-3)
+    mag = ZERO_POINT - 2.5 * torch.log10(flux)
+    b = data.shape[0]
+    theta = torch.zeros(b, len(PARAMS), dtype=torch.float64)
+    theta[:, 0], theta[:, 1], theta[:, 2] = mag, 0.0, 3.0
+    theta[:, 5:7] = centres
+    return theta
+
+
+def fit_lens_light(
+    images,
+    psf,
+    centres,
+    theta_e,
+    *,
+    background_sigma: float,
+    exposure_time: float,
+    pixel_scale: float,
+    arc_mask: tuple[float, float] = (0.6, 1.5),
+    clip: float | None = 3.0,
+    systematic: float = 0.02,
+    iterations: int = 10,
+    pedestal: bool = False,
+) -> LightFit:
+    """Fit the lens light of ``images`` ``(B, H, W)`` (e⁻/s per pixel) with the arcs masked.
+
+    ``psf``: the pixel kernel (odd, sum 1); ``centres``: ``(B, 2)`` starting lens centres
+    (x, y, arcsec); ``theta_e``: ``(B,)`` Einstein radii (arcsec) for the arc annulus
+    ``arc_mask`` (inner, outer, in units of θ_E); ``background_sigma``: the detector's
+    empty-pixel σ (e⁻/s); ``exposure_time`` (s) for the Poisson term; ``clip``: the
+    second pass masks pixels this many σ above the first model (``None``: one pass);
+    ``systematic``: the model-error floor ``s`` of σ_p (module docstring);
+    ``iterations``: LM steps per pass; ``pedestal``: fit the constant ``b`` too.
+    """
+    data = torch.as_tensor(np.asarray(images, dtype=np.float64))
+    if data.ndim != 3:
+        raise ValueError(f"images must be (B, H, W), got shape {tuple(data.shape)}")
+    if not torch.all(torch.isfinite(data)):
+        raise ValueError("images contain NaN or Inf")
+    b, h, w = data.shape
+    if h != w:
+        raise ValueError(f"images must be square, got {h} x {w}")
+    psf_t = torch.as_tensor(np.asarray(psf, dtype=np.float64))
+    xs, ys = pixel_grid(h, pixel_scale, dtype=torch.float64)
+    grid = (xs[None], ys[None])
+    c = torch.as_tensor(np.asarray(centres, dtype=np.float64)).reshape(b, 2)
+    te = torch.as_tensor(np.asarray(theta_e, dtype=np.float64)).reshape(b)
+    r = torch.hypot(xs[None] - c[:, 0, None, None], ys[None] - c[:, 1, None, None])
+    lo, hi = arc_mask
+    mask = ~((r > lo * te[:, None, None]) & (r < hi * te[:, None, None]))
+    pos = data.clamp(min=0)
+    sigma = torch.sqrt(background_sigma**2 + pos / exposure_time + (systematic * pos) ** 2)
+    theta = _start(data, grid, c, pixel_scale)
+    free = torch.ones(len(PARAMS), dtype=torch.bool)
+    free[7] = pedestal
+    theta, model, chi2 = _lm(
+        theta, data, mask / sigma**2, grid, psf_t, pixel_scale, iterations, free
+    )
+    if clip is not None:
+        hot = (data - model) > clip * sigma
+        hot = torch.nn.functional.max_pool2d(hot[:, None].double(), 3, 1, 1)[:, 0] > 0
+        mask = mask & ~hot
+        theta, model, chi2 = _lm(
+            theta, data, mask / sigma**2, grid, psf_t, pixel_scale, iterations, free
+        )
+    q, _ = e1e2_to_q_phi(theta[:, 3], theta[:, 4])
+    npix = mask.sum((-2, -1)).clamp(min=1)
+    return LightFit(
+        mag=theta[:, 0].numpy(),
+        r_sersic=torch.exp(theta[:, 1]).numpy(),
+        n_sersic=theta[:, 2].numpy(),
+        e1=theta[:, 3].numpy(),
+        e2=theta[:, 4].numpy(),
+        q=q.numpy(),
+        x=theta[:, 5].numpy(),
+        y=theta[:, 6].numpy(),
+        background=theta[:, 7].numpy(),
+        chi2_dof=(chi2 / npix).numpy(),
+        mask=mask.numpy(),
+        model=model.numpy(),
+        sigma=sigma.numpy(),
+    )
+
+
+def prior_from_fits(
+    mag,
+    r_sersic,
+    n_sersic,
+    q,
+    *,
+    mag_margin: float = 0.5,
+    r_factor: float = 1.25,
+    n_margin: float = 0.5,
+    e_margin: float = 0.05,
+    decimals: int = 2,
+) -> dict[str, dict[str, float | str]]:
+    """Uniform lens-light priors covering fitted values with a margin (config mappings).
+
+    ``mag``: U(min − mag_margin, max + mag_margin); ``r_sersic``: U(min / r_factor,
+    max · r_factor) within the fit's box (:data:`BOUNDS`); ``n_sersic``: U(min − n_margin,
+    max + n_margin) clipped to [0.5, 8]; ``e1``, ``e2``: U(−e, e) with
+    e = max (1 − q)/(1 + q) + e_margin. Bounds
+    are rounded outwards to ``decimals``."""
+    mag, r, n, q = (np.asarray(v, dtype=np.float64) for v in (mag, r_sersic, n_sersic, q))
+    scale = 10.0**decimals
+
+    def uniform(lo, hi):
+        return {
+            "dist": "uniform",
+            "low": float(math.floor(lo * scale) / scale),
+            "high": float(math.ceil(hi * scale) / scale),
+        }
+
+    e = float(np.max((1 - q) / (1 + q))) + e_margin
+    r_box = math.exp(BOUNDS["ln_r"][1])
+    return {
+        "mag": uniform(mag.min() - mag_margin, mag.max() + mag_margin),
+        "r_sersic": uniform(r.min() / r_factor, min(r.max() * r_factor, r_box)),
+        "n_sersic": uniform(max(0.5, n.min() - n_margin), min(8.0, n.max() + n_margin)),
+        "e1": uniform(-e, e),
+        "e2": uniform(-e, e),
+    }

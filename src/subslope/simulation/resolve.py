@@ -1,0 +1,52 @@
+"""The scenes of a config: each scene resolved against its preset, the multipliers a CDM
+scene is simulated at, and the config values that determine a shard's images (hashed
+into its checksum and its job's parameters)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from subslope.simulation.scenes import Scene, merge_onto_preset
+
+__all__ = ["resolved_scene", "scene_multipliers", "simulation_sections"]
+
+
+def resolved_scene(config: Mapping[str, Any], name: str) -> tuple[Scene, dict[str, Any]]:
+    """The Scene ``name`` of the config and its complete spec (preset merged, JSON-able)."""
+    spec = (config.get("scenes") or {}).get(name) or {}
+    key = f"scenes.{name}"
+    merged = merge_onto_preset(name, spec, key)
+    return Scene.from_config(name, spec, key), merged
+
+
+def scene_multipliers(config: Mapping[str, Any], scene: Scene) -> tuple[float, ...] | None:
+    """Multipliers simulated for a CDM scene (None for scenes without concentrations)."""
+    if not scene.uses_concentration:
+        return None
+    mults = config["simulation"].get("multipliers")
+    return tuple(float(a) for a in (mults if mults else scene.concentration.multipliers))
+
+
+def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]:
+    """The config values that determine the images of a shard of ``scene`` (hashed).
+
+    ``config`` is validated first, so omitted keys count with their defaults."""
+    from subslope import config as _config
+
+    config = _config.validate(config)
+    _, spec = resolved_scene(config, scene)
+    sim = config["simulation"]
+    render = {k: v for k, v in sim["render"].items() if k not in ("batch_size", "device")}
+    return {
+        "seed": config["seed"],
+        "instrument": config["instrument"],
+        "cosmology": config["cosmology"],
+        "scene": spec,
+        "images_per_shard": sim["scenes"][scene]["images_per_shard"]
+        if scene in sim["scenes"]
+        else None,
+        "multipliers": sim["multipliers"],
+        "render": render,
+        "sources": sim["sources"],
+    }

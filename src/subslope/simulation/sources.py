@@ -1,0 +1,310 @@
+"""COSMOS galaxies as the lensed sources of a scene: the catalogue folders of a config,
+the galaxies of a split, each stamp cleaned of its sky noise and placed at its image's
+source redshift (``docs/simulation.md``, "Sources").
+
+Cleaning (``simulation.sources.clean``, :func:`subslope.io.cosmos.clean_stamp`) keeps
+the central galaxy's footprint and zeroes the stamp's sky noise around it. Renormalising
+a faint stamp to a bright magnitude multiplies the noise left inside that footprint too:
+``max_noise_fraction`` drops every galaxy whose stamp noise, once placed at
+``reference_z_source``, renormalised to the brightest magnitude of ``mag_renormalize``
+and seen through the PSF, exceeds that fraction of the detector's background σ per
+pixel (:func:`noise_fraction`).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from subslope.io.cosmos import (
+    CosmosCatalog,
+    CosmosCuts,
+    clean_stamp,
+    normalize_to_magnitude,
+    place_at_redshift,
+    split_idents,
+)
+from subslope.physics.light.pixelated import pad_stamps
+
+__all__ = [
+    "catalog_at",
+    "cosmos_folders",
+    "source_split",
+    "source_table",
+    "noise_fraction",
+    "place_source",
+    "pixelated_sources",
+    "draw_sources",
+]
+
+log = logging.getLogger(__name__)
+
+
+@functools.lru_cache(maxsize=8)
+def catalog_at(folders: tuple[str, ...] | str) -> CosmosCatalog:
+    """The (cached) catalogue of one folder or a tuple of folders."""
+    return CosmosCatalog.load(list(folders) if isinstance(folders, tuple) else folders)
+
+
+def cosmos_folders(config: Mapping[str, Any]) -> list[Path]:
+    """The catalogue folders of ``simulation.sources.folder`` (one name or a list),
+    under ``data.resources_dir``."""
+    folder = config["simulation"]["sources"]["folder"]
+    names = folder if isinstance(folder, (list, tuple)) else [folder]
+    return [Path(config["data"]["resources_dir"]) / f for f in names]
+
+
+def _cleaning(src: Mapping[str, Any]) -> tuple | None:
+    c = src.get("clean") or {}
+    if not c.get("enabled", False):
+        return None
+    return (float(c["threshold"]), float(c["smoothing"]), int(c["dilate"]), float(c["taper"]))
+
+
+@functools.lru_cache(maxsize=4096)
+def _clean(folders, ident: int, cleaning: tuple) -> np.ndarray:
+    cat = catalog_at(folders)
+    t, s, d, tp = cleaning
+    out = clean_stamp(
+        cat.stamp(ident), cat.noise_sigma(ident), threshold=t, smoothing=s, dilate=d, taper=tp
+    ).image
+    out.setflags(write=False)
+    return out
+
+
+def _stamp(catalog: CosmosCatalog, src: Mapping[str, Any], ident: int) -> np.ndarray:
+    cleaning = _cleaning(src)
+    if cleaning is None:
+        return catalog.stamp(ident)
+    folders = tuple(dict.fromkeys(str(f) for f in catalog.table["folder"]))
+    return _clean(folders if len(folders) > 1 else folders[0], int(ident), cleaning)
+
+
+def noise_fraction(
+    catalog: CosmosCatalog,
+    src: Mapping[str, Any],
+    ident: int,
+    zero_point: float,
+    inst,
+    psf_norm: float = 1.0,
+) -> float:
+    """Stamp noise of galaxy ``ident`` after placement at ``clean.reference_z_source`` and
+    renormalisation to the brightest ``mag_renormalize`` magnitude (none: its own flux),
+    as a fraction of the detector's background σ per pixel: σ_stamp·f·Δ²·‖PSF‖₂ / σ_det,
+    with ``f`` the factor placement and renormalisation multiply the stamp by, Δ the
+    detector pixel (arcsec; a lensed pixel samples one source-plane point, so surface
+    brightness noise becomes σ_sb·Δ² per pixel) and ‖PSF‖₂ = (Σ psf²)^½ the factor by
+    which the PSF lowers white pixel noise."""
+    row = catalog.table.loc[catalog.table["ident"] == int(ident)].iloc[0]
+    z_ref = float((src.get("clean") or {}).get("reference_z_source", 0.7))
+    stamp = _stamp(catalog, src, ident)
+    sb, pix = place_at_redshift(
+        stamp, float(row["pixel_scale"]), float(row["zphot"]), z_ref, zero_point_out=zero_point
+    )
+    renorm = src.get("mag_renormalize")
+    if renorm:
+        sb = normalize_to_magnitude(sb, pix, float(min(renorm)), zero_point)
+    peak = int(np.argmax(np.abs(stamp)))
+    factor = float(sb.flat[peak] / stamp.flat[peak]) if stamp.flat[peak] != 0 else 0.0
+    sigma_sb = catalog.noise_sigma(ident) * factor
+    return float(sigma_sb * inst.pixel_scale**2 * psf_norm / inst.background_sigma)
+
+
+def source_table(config: Mapping[str, Any]) -> pd.DataFrame:
+    """Every galaxy of the configured catalogues with its cuts: ``ident, folder, mag_auto,
+    zphot, peak_snr, footprint_fraction, noise_fraction, selected, split``."""
+    src = config["simulation"]["sources"]
+    inst, zp, psf_norm = _noise_model(config)
+    cat = catalog_at(_key(cosmos_folders(config)))
+    c = src.get("clean") or {}
+    rows = []
+    for ident in cat.idents:
+        cs = clean_stamp(
+            cat.stamp(ident),
+            cat.noise_sigma(ident),
+            threshold=float(c.get("threshold", 3.0)),
+            smoothing=float(c.get("smoothing", 1.0)),
+            dilate=int(c.get("dilate", 2)),
+            taper=float(c.get("taper", 2.0)),
+        )
+        rows.append(
+            {
+                "ident": int(ident),
+                "peak_snr": cs.peak_snr,
+                "footprint_fraction": cs.footprint_fraction,
+                "noise_fraction": noise_fraction(cat, src, ident, zp, inst, psf_norm),
+            }
+        )
+    table = cat.table[["ident", "folder", "mag_auto", "zphot", "nx", "ny"]].merge(
+        pd.DataFrame(rows), on="ident"
+    )
+    split_of = {}
+    for name in ("train", "validation", "test"):
+        try:
+            _, ids = source_split(config, name)
+        except ValueError:
+            continue
+        split_of.update({int(i): name for i in ids})
+    table["selected"] = table["ident"].isin(list(split_of))
+    table["split"] = table["ident"].map(split_of).fillna("")
+    return table
+
+
+def _key(folders: Sequence[Path]):
+    names = tuple(str(f) for f in folders)
+    return names if len(names) > 1 else names[0]
+
+
+def source_split(config: Mapping[str, Any], split: str) -> tuple[CosmosCatalog, np.ndarray]:
+    """The COSMOS catalogue (after cuts) and the IDENTs of ``split``."""
+    src = config["simulation"]["sources"]
+    catalog = catalog_at(_key(cosmos_folders(config)))
+    c = src["cuts"]
+    selected = catalog.select(
+        CosmosCuts(
+            c["mag_max"],
+            c["min_stamp_side"],
+            c["min_flux_radius"],
+            c["zphot_max"],
+            tuple(c.get("exclude", ())),
+        )
+    )
+    limit = (src.get("clean") or {}).get("max_noise_fraction")
+    if _cleaning(src) is not None and limit is not None:
+        selected = _noise_cut(config, selected, float(limit))
+    s = src["split"]
+    if s.get("ids"):
+        ids = np.asarray(s["ids"].get(split, []), dtype=np.int64)
+        missing = ids[~np.isin(ids, selected.idents)]
+        if missing.size:
+            raise ValueError(
+                f"config key simulation.sources.split.ids.{split}: IDENT(s) {missing.tolist()} "
+                "are not among the selected COSMOS galaxies"
+            )
+    else:
+        ids = split_idents(
+            selected.idents, {k: s[k] for k in ("train", "validation", "test")}, s["salt"]
+        )[split]
+    if ids.size == 0:
+        raise ValueError(f"the COSMOS split {split!r} is empty (simulation.sources.split)")
+    return selected, ids
+
+
+def _noise_model(config):
+    """Instrument, zero point and PSF norm (Σ psf²)^½ of the config."""
+    from subslope.simulation.observing import build_instrument, build_psf
+
+    psf = build_psf(config)
+    return (
+        build_instrument(config),
+        float(config["instrument"]["zero_point"]),
+        float(np.sqrt(np.sum(np.asarray(psf, dtype=np.float64) ** 2))),
+    )
+
+
+@functools.lru_cache(maxsize=16)
+def _noise_fractions(config_json: str) -> dict[int, float]:
+    import json
+
+    config = json.loads(config_json)
+    src = config["simulation"]["sources"]
+    inst, zp, psf_norm = _noise_model(config)
+    cat = catalog_at(_key(cosmos_folders(config)))
+    return {int(i): noise_fraction(cat, src, i, zp, inst, psf_norm) for i in cat.idents}
+
+
+def _noise_cut(config, selected: CosmosCatalog, limit: float) -> CosmosCatalog:
+    from subslope.config import canonical_json
+
+    keys = ("data", "instrument", "simulation")
+    fracs = _noise_fractions(canonical_json({k: config[k] for k in keys}))
+    frac = np.array([fracs[int(i)] for i in selected.idents])
+    keep = selected.idents[frac <= limit]
+    if keep.size == 0:
+        raise ValueError(
+            f"no COSMOS galaxy keeps its stamp noise below simulation.sources.clean."
+            f"max_noise_fraction = {limit} of the detector noise (fractions "
+            f"{frac.min():.2f}–{frac.max():.2f}); raise it or renormalise to fainter magnitudes"
+        )
+    return selected.subset(keep)
+
+
+def place_source(
+    catalog: CosmosCatalog,
+    src: Mapping[str, Any],
+    ident: int,
+    z_source: float,
+    zero_point: float,
+    mag: float | None,
+):
+    """Galaxy ``ident`` (cleaned as ``src['clean']`` says) at ``z_source``, renormalised to
+    ``mag`` when given: ``(surface brightness, pixel scale, z_phot)``."""
+    row = catalog.table.loc[catalog.table["ident"] == int(ident)].iloc[0]
+    sb, pix = place_at_redshift(
+        _stamp(catalog, src, ident),
+        float(row["pixel_scale"]),
+        float(row["zphot"]),
+        float(z_source),
+        zero_point_out=zero_point,
+    )
+    if mag is not None and np.isfinite(mag):
+        sb = normalize_to_magnitude(sb, pix, float(mag), zero_point)
+    return sb, pix, float(row["zphot"])
+
+
+def pixelated_sources(stamps: Sequence[np.ndarray], pixel_scales, pad_shape, settings):
+    """PixelatedSources padded to the fixed ``pad_shape`` (so an image does not depend on
+    which other stamps share its batch)."""
+    from subslope.render.pipeline import PixelatedSources
+
+    filler = np.zeros(tuple(int(v) for v in pad_shape))
+    padded, offsets = pad_stamps(list(stamps) + [filler], dtype=settings.dtype, device="cpu")
+    return PixelatedSources(
+        stamps=padded[:-1],
+        offsets=offsets[:-1],
+        pixel_scale=np.asarray(pixel_scales, dtype=np.float64),
+    )
+
+
+def draw_sources(
+    config: Mapping[str, Any],
+    sc,
+    macro: Mapping[str, np.ndarray],
+    rng: np.random.Generator,
+    zero_point: float,
+) -> tuple[dict[str, np.ndarray], list[np.ndarray], tuple[int, int] | None]:
+    """One COSMOS galaxy per image (uniform over the scene's split), placed at its
+    z_source: ``(per-image source records, stamps, padded stamp shape)``; nothing for a
+    parametric source."""
+    n = len(macro["z_source"])
+    if sc.source.kind != "cosmos":
+        return {}, [], None
+    src = config["simulation"]["sources"]
+    catalog, ids = source_split(config, sc.source.split)
+    pick = ids[rng.integers(0, ids.size, n)]
+    renorm = src["mag_renormalize"]
+    mags = rng.uniform(renorm[0], renorm[1], n) if renorm else None
+    pix = np.empty(n)
+    zphot = np.empty(n)
+    stamps = []
+    for i in range(n):
+        sb, pix[i], zphot[i] = place_source(
+            catalog,
+            src,
+            pick[i],
+            macro["z_source"][i],
+            zero_point,
+            None if mags is None else mags[i],
+        )
+        stamps.append(sb)
+    pad_shape = (int(catalog.table["ny"].max()), int(catalog.table["nx"].max()))
+    sources = {"ident": pick.astype(np.int64), "z_phot": zphot, "pixel_scale": pix}
+    if mags is not None:
+        sources["mag"] = mags
+    return sources, stamps, pad_shape

@@ -1,0 +1,216 @@
+"""Stage ``domain``: does the simulation look like the data? (rules fit_lens_light and
+check_domain; ``subslope domain-check``).
+
+- :func:`fit_hst_lens_light`: the PSF-convolved Sérsic fit of every HST lens's light
+  (arcs masked) and the lens-light prior that covers the fits
+  (:func:`subslope.physics.light.fit.prior_from_fits`), beside the shipped ``hst_fits``
+  preset;
+- :func:`check_domain`: the statistics of :mod:`subslope.validation.domain` over the first
+  ``domain.n_images`` images of a scene's shards and over the 13 HST cutouts, each lens's
+  percentile in the simulated distribution, the figures, and the COSMOS source table
+  (per-galaxy peak S/N, footprint and noise fraction, selection);
+- :func:`domain_check_cli`: the same check on images simulated in the process.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from subslope.figures.domain import domain_gallery, domain_histograms
+from subslope.figures.save import save_figure
+from subslope.io.atomic import write_text
+from subslope.io.observations import find_lens_centre, load_hst
+from subslope.io.shards import open_shard
+from subslope.physics.light.fit import fit_lens_light, prior_from_fits
+from subslope.validation.domain import STATISTICS, domain_percentiles, image_statistics
+
+__all__ = ["fit_hst_lens_light", "check_domain", "domain_check_cli", "shard_images"]
+
+log = logging.getLogger(__name__)
+
+
+def _noise_model(config: Mapping[str, Any]):
+    from subslope.simulation.observing import build_instrument, build_psf
+
+    inst = build_instrument(config)
+    return build_psf(config), inst
+
+
+def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior) -> pd.DataFrame:
+    """Fit the lens light of every HST cutout; write the fits (one row per system) to
+    ``out_csv`` and the covering prior, with the shipped ``hst_fits`` preset beside it,
+    to ``out_prior`` (YAML)."""
+    import yaml
+
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+
+    psf, inst = _noise_model(config)
+    obs = load_hst(hst_folder)
+    lc = dict(config["hst"]["lens_centre"])
+    centres = np.array([find_lens_centre(o.image, pixel_scale=inst.pixel_scale, **lc) for o in obs])
+    fit = fit_lens_light(
+        np.stack([o.image for o in obs]),
+        psf,
+        centres,
+        np.array([o.theta_e for o in obs]),
+        background_sigma=inst.background_sigma,
+        exposure_time=inst.total_exposure_time,
+        pixel_scale=inst.pixel_scale,
+    )
+    table = pd.DataFrame(
+        {
+            "system": [o.name for o in obs],
+            "theta_e": [o.theta_e for o in obs],
+            "mag": fit.mag,
+            "r_sersic": fit.r_sersic,
+            "n_sersic": fit.n_sersic,
+            "e1": fit.e1,
+            "e2": fit.e2,
+            "q": fit.q,
+            "x": fit.x,
+            "y": fit.y,
+            "chi2_dof": fit.chi2_dof,
+            "used_fraction": fit.mask.mean((1, 2)),
+            "cutout_mag": inst.magnitude_zero_point
+            - 2.5 * np.log10(np.stack([o.image for o in obs]).sum((1, 2))),
+        }
+    )
+    write_text(out_csv, table.to_csv(index=False, float_format="%.6g"))
+    derived = prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q)
+    doc = {
+        "derived": derived,
+        "shipped_hst_fits": LENS_LIGHT_PRIORS["hst_fits"],
+        "shipped_equals_derived": derived == LENS_LIGHT_PRIORS["hst_fits"],
+    }
+    write_text(out_prior, yaml.safe_dump(doc, sort_keys=False))
+    if not doc["shipped_equals_derived"]:
+        log.warning(
+            "the shipped hst_fits lens-light prior differs from the one derived now: %s",
+            derived,
+        )
+    return table
+
+
+def shard_images(paths: Sequence[str | os.PathLike[str]], n: int):
+    """The first ``n`` images of the shards ``paths`` (in order) and their θ_E."""
+    images, theta_e = [], []
+    have = 0
+    for path in paths:
+        if have >= n:
+            break
+        with open_shard(path) as shard:
+            k = min(len(shard), n - have)
+            images.append(np.asarray(shard.images[:k], dtype=np.float64))
+            theta_e.append(np.asarray(shard.params["theta_e"][:k], dtype=np.float64))
+            have += k
+    if have == 0:
+        raise ValueError(f"no images in the shards {list(paths)}")
+    if have < n:
+        log.warning("domain check: only %d images in the shards (asked for %d)", have, n)
+    return np.concatenate(images), np.concatenate(theta_e)
+
+
+def check_domain(
+    config: Mapping[str, Any],
+    images,
+    theta_e,
+    whitening: tuple[float, float],
+    hst_folder,
+    out_dir,
+    figure_stems: tuple[str, str],
+    *,
+    scene: str,
+) -> pd.DataFrame:
+    """Statistics of the simulated ``images`` and the HST cutouts; writes
+    ``domain_check.csv`` (one row per HST system: each statistic's percentile,
+    ``inside``, ``outside``), ``statistics.csv`` (every image's statistics, ``kind`` sim
+    or hst) and ``sources.csv`` (the COSMOS galaxies) to ``out_dir`` and the two figures."""
+    from subslope.simulation.sources import source_table
+
+    out_dir = Path(out_dir)
+    dom = config["domain"]
+    psf, inst = _noise_model(config)
+    kw = {
+        "psf": psf,
+        "background_sigma": inst.background_sigma,
+        "exposure_time": inst.total_exposure_time,
+        "whitening": whitening,
+        "pixel_scale": inst.pixel_scale,
+        "mask_factor": config["training"]["mask_factor"],
+        "lens_centre": dict(config["hst"]["lens_centre"]),
+    }
+    log.info("domain check: statistics of %d %s images", len(images), scene)
+    sim = image_statistics(images, theta_e, **kw)
+    obs = load_hst(hst_folder)
+    names = [o.name for o in obs]
+    real_images = np.stack([o.image for o in obs])
+    real = image_statistics(real_images, [o.theta_e for o in obs], **kw)
+    table = domain_percentiles(sim, real, names, bounds=tuple(dom["bounds"]))
+    write_text(out_dir / "domain_check.csv", table.to_csv(index=False, float_format="%.4g"))
+    both = pd.concat(
+        [sim.assign(kind="sim", system=""), real.assign(kind="hst", system=names)],
+        ignore_index=True,
+    )
+    write_text(out_dir / "statistics.csv", both.to_csv(index=False, float_format="%.6g"))
+    if any(s["source"]["kind"] == "cosmos" for s in _scene_specs(config)):
+        write_text(
+            out_dir / "sources.csv", source_table(config).to_csv(index=False, float_format="%.4g")
+        )
+    run = config["run_name"]
+    save_figure(
+        domain_histograms(sim, real, table, STATISTICS, run_name=run, scene=scene),
+        figure_stems[0],
+        run_name=run,
+    )
+    save_figure(
+        domain_gallery(real_images, names, images, run_name=run, scene=scene),
+        figure_stems[1],
+        run_name=run,
+    )
+    log.info("domain check: %d of %d HST lenses inside", int(table["inside"].sum()), len(table))
+    return table
+
+
+def _scene_specs(config):
+    from subslope.simulation.resolve import resolved_scene
+
+    return [resolved_scene(config, config["domain"]["scene"])[1]]
+
+
+def domain_check_cli(
+    config: Mapping[str, Any], scene: str, n: int, out, *, whitening_json=None, seed=None
+) -> pd.DataFrame:
+    """:func:`check_domain` on ``n`` images of ``scene`` simulated here (seed: the
+    config's), whitened with ``whitening_json`` or, without one, with the pixel mean and
+    std of those images; outputs under ``out`` (``domain_check.csv`` and the figures)."""
+    from subslope.nre.preprocess import read_whitening
+    from subslope.simulation.shard import shard_seed_sequence, simulate_images
+
+    ss = shard_seed_sequence(int(config["seed"] if seed is None else seed), scene, 0, 0)
+    sim = simulate_images(config, scene, int(n), ss)
+    images = np.asarray(sim["images"], dtype=np.float64)
+    theta_e = np.asarray(sim["params"]["theta_e"], dtype=np.float64)
+    if whitening_json is not None:
+        white = read_whitening(whitening_json)
+    else:
+        white = (float(images.mean()), float(images.std()))
+    cfg = dict(config)
+    cfg["domain"] = dict(config["domain"], scene=scene)
+    out = Path(out)
+    return check_domain(
+        cfg,
+        images,
+        theta_e,
+        white,
+        Path(config["data"]["resources_dir"]) / "hst",
+        out,
+        (str(out / "domain_check"), str(out / "domain_gallery")),
+        scene=scene,
+    )

@@ -1,0 +1,176 @@
+"""Does the simulation look like the data? Summary statistics of lens images, computed the
+same way on simulated images and on the real HST cutouts, and where each real lens falls
+in the simulated distribution (``docs/simulation.md``, "Domain check").
+
+Per image (:data:`STATISTICS`):
+
+- ``white_mean``, ``white_std``: mean and std of the whitened image (training whitening)
+  over the estimator's mask (``mask_factor`` θ_E about the lens centre);
+- ``flux_centre``: flux within 0.3″ of the lens centre (e⁻/s);
+- ``flux_annulus``: flux in the annulus 0.7–1.5 θ_E (e⁻/s);
+- ``light_mag``, ``light_r``, ``light_n``, ``light_q``: the PSF-convolved Sérsic fit of
+  the lens light with the arcs masked (:func:`subslope.physics.light.fit.fit_lens_light`);
+- ``arc_snr``: the peak of (image − fitted lens light) / σ over the annulus, σ² = σ_bg² +
+  max(model, 0)/t the detector noise of the fitted light;
+- ``bright_fraction``: the fraction of the mask's pixels above 3 σ_bg.
+
+The lens centre is measured on every image with
+:func:`subslope.io.observations.find_lens_centre` (as for the HST lenses in the analysis);
+θ_E is the simulated one or the catalogue's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from subslope.io.observations import find_lens_centre
+from subslope.nre.preprocess import preprocess
+from subslope.physics.grid import pixel_grid
+from subslope.physics.light.fit import fit_lens_light
+
+__all__ = ["STATISTICS", "image_statistics", "domain_percentiles", "CENTRE_RADIUS", "ANNULUS"]
+
+STATISTICS = (
+    "white_mean",
+    "white_std",
+    "flux_centre",
+    "flux_annulus",
+    "light_mag",
+    "light_r",
+    "light_n",
+    "light_q",
+    "arc_snr",
+    "bright_fraction",
+)
+#: Radius of the central aperture, arcsec.
+CENTRE_RADIUS = 0.3
+#: Annulus of the arcs, in units of θ_E.
+ANNULUS = (0.7, 1.5)
+
+
+def image_statistics(
+    images,
+    theta_e,
+    *,
+    psf,
+    background_sigma: float,
+    exposure_time: float,
+    whitening: tuple[float, float],
+    pixel_scale: float,
+    mask_factor: float = 1.5,
+    lens_centre: Mapping[str, Any] | None = None,
+    chunk: int = 100,
+) -> pd.DataFrame:
+    """The statistics of :data:`STATISTICS` for ``images`` ``(B, H, W)`` (e⁻/s per pixel)
+    with Einstein radii ``theta_e`` ``(B,)`` (arcsec); one row per image, plus the
+    measured lens centre ``lens_x``, ``lens_y`` (arcsec)."""
+    images = np.asarray(images, dtype=np.float64)
+    theta_e = np.asarray(theta_e, dtype=np.float64).reshape(-1)
+    if images.ndim != 3 or images.shape[0] != theta_e.size:
+        raise ValueError(
+            f"images {images.shape} and theta_e {theta_e.shape} do not describe the same images"
+        )
+    rows = []
+    for s in range(0, len(images), chunk):
+        rows.append(
+            _chunk_statistics(
+                images[s : s + chunk],
+                theta_e[s : s + chunk],
+                psf,
+                background_sigma,
+                exposure_time,
+                whitening,
+                pixel_scale,
+                mask_factor,
+                dict(lens_centre or {}),
+            )
+        )
+    return pd.concat(rows, ignore_index=True)
+
+
+def _chunk_statistics(images, theta_e, psf, sigma_bg, t_exp, whitening, pix, mask_factor, lc):
+    n, h, _ = images.shape
+    centres = np.array([find_lens_centre(im, pixel_scale=pix, **lc) for im in images])
+    fit = fit_lens_light(
+        images,
+        psf,
+        centres,
+        theta_e,
+        background_sigma=sigma_bg,
+        exposure_time=t_exp,
+        pixel_scale=pix,
+    )
+    xs, ys = (a.numpy() for a in pixel_grid(h, pix))
+    r = np.hypot(xs[None] - centres[:, 0, None, None], ys[None] - centres[:, 1, None, None])
+    te = theta_e[:, None, None]
+    annulus = (r > ANNULUS[0] * te) & (r < ANNULUS[1] * te)
+    inside = r <= mask_factor * te
+    white = preprocess(
+        images,
+        theta_e,
+        centres[:, 0],
+        centres[:, 1],
+        *whitening,
+        pixel_scale=pix,
+        mask_factor=None,
+    )
+    sigma = np.sqrt(sigma_bg**2 + np.clip(fit.model, 0, None) / t_exp)
+    snr = (images - fit.model) / sigma
+
+    def over(mask, values, op):
+        return np.array([op(values[k][mask[k]]) if mask[k].any() else np.nan for k in range(n)])
+
+    return pd.DataFrame(
+        {
+            "lens_x": centres[:, 0],
+            "lens_y": centres[:, 1],
+            "white_mean": over(inside, white, np.mean),
+            "white_std": over(inside, white, np.std),
+            "flux_centre": (images * (r <= CENTRE_RADIUS)).sum((1, 2)),
+            "flux_annulus": (images * annulus).sum((1, 2)),
+            "light_mag": fit.mag,
+            "light_r": fit.r_sersic,
+            "light_n": fit.n_sersic,
+            "light_q": fit.q,
+            "arc_snr": over(annulus, snr, np.max),
+            "bright_fraction": over(inside, images > 3.0 * sigma_bg, np.mean),
+        }
+    )
+
+
+def domain_percentiles(
+    simulated: pd.DataFrame,
+    real: pd.DataFrame,
+    names: Sequence[str],
+    *,
+    bounds: tuple[float, float] = (1.0, 99.0),
+    statistics: Sequence[str] = STATISTICS,
+) -> pd.DataFrame:
+    """Percentile of each real image's statistic in the simulated distribution (the
+    percentage of simulated values below it, ties counted half), one row per system;
+    ``inside`` when every percentile lies within ``bounds``, and ``outside`` lists the
+    statistics that do not."""
+    out = {"system": list(names)}
+    ok = np.ones(len(real), dtype=bool)
+    bad: list[list[str]] = [[] for _ in range(len(real))]
+    for stat in statistics:
+        sim = np.sort(simulated[stat].to_numpy(dtype=np.float64))
+        sim = sim[np.isfinite(sim)]
+        val = real[stat].to_numpy(dtype=np.float64)
+        below = np.searchsorted(sim, val, side="left")
+        equal = np.searchsorted(sim, val, side="right") - below
+        pct = 100.0 * (below + 0.5 * equal) / max(sim.size, 1)
+        pct = np.where(np.isfinite(val) & (sim.size > 0), pct, np.nan)
+        out[f"{stat}_pct"] = pct
+        within = (pct >= bounds[0]) & (pct <= bounds[1])
+        ok &= within
+        for k in np.flatnonzero(~within):
+            bad[k].append(stat)
+    table = pd.DataFrame(out)
+    table["inside"] = ok
+    table["outside"] = [";".join(b) for b in bad]
+    return table

@@ -1,0 +1,25 @@
+"""Snakemake script of rule check_domain: simulated vs HST summary statistics."""
+
+import logging
+import os
+
+from subslope.logs import log_to_file
+from subslope.nre.preprocess import read_whitening
+from subslope.stages.domain import check_domain, shard_images
+
+log_to_file(snakemake.log[0])
+try:
+    images, theta_e = shard_images(list(snakemake.input.shards), snakemake.params.n_images)
+    check_domain(
+        snakemake.config,
+        images,
+        theta_e,
+        read_whitening(snakemake.input.whitening),
+        snakemake.params.folder,
+        os.path.dirname(snakemake.output.csv),
+        (snakemake.output.pdf[: -len(".pdf")], snakemake.output.gallery_pdf[: -len(".pdf")]),
+        scene=snakemake.params.scene,
+    )
+except Exception:
+    logging.exception("check_domain failed")
+    raise

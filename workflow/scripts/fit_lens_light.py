@@ -1,0 +1,16 @@
+"""Snakemake script of rule fit_lens_light: Sérsic fits of the HST lens light."""
+
+import logging
+
+from subslope.logs import log_to_file
+from subslope.stages.domain import fit_hst_lens_light
+
+log_to_file(snakemake.log[0])
+try:
+    table = fit_hst_lens_light(
+        snakemake.config, snakemake.params.folder, snakemake.output.csv, snakemake.output.prior
+    )
+    logging.info("fitted the lens light of %d lenses", len(table))
+except Exception:
+    logging.exception("fit_lens_light failed")
+    raise
