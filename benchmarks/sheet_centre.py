@@ -4,7 +4,7 @@ A population of summed convergence κ̄ (pixel mean) whose κ-weighted centre ov
 image is ``c`` is compensated by a sheet −κ̄ centred at the origin; together they leave a
 constant deflection ≈ κ̄·c across the arc (docs/simulation.md, "Sheet centre"), which
 shifts the source by that much. This script draws ``--n`` systems of the train scene
-(subhalos on the arc of their smooth model, LoS off), computes κ̄ and c in float64 from
+of the reduced config (subhalos on the arc of their smooth model, LoS off), computes κ̄ and c in float64 from
 the members and prints |κ̄ c| (arcsec) per bin of the label γ beside the source-position
 prior (±0.1″). The ``mass_centroid`` sheet leaves none.
 
@@ -27,14 +27,11 @@ from subslope.validation.stiff import summed_subhalo_kappa
 
 def offsets(n: int, seed: int, resources: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Label γ, N_sub and |κ̄ c| (arcsec) of ``n`` simulated train systems."""
-    cfg = cfgmod.validate(
-        {
-            "data": {"resources_dir": resources},
-            "seed": seed,
-            "scenes": {"train": {"components": {"los": False}}},
-            "simulation": {"render": {"compile": "off"}},
-        }
-    )
+    cfg = cfgmod.load("config/config.yaml", env=False)
+    cfg["data"]["resources_dir"] = resources
+    cfg["scenes"]["train"]["components"]["los"] = False
+    cfg["simulation"]["render"]["compile"] = "off"
+    cfg = cfgmod.validate(cfg)
     out = simulate_images(cfg, "train", n, shard_seed_sequence(seed, "train", 0), noise=False)
     subs, counts = out["subhalos"], out["subhalos"]["counts"]
     off = np.concatenate([[0], np.cumsum(counts)])

@@ -60,6 +60,9 @@ def test_paper_config_has_the_paper_numbers():
         "high": 3000,
     }
     assert cfg["scenes"]["validation"]["subhalos"]["count"]["high"] == 1800
+    # the lens light that covers the HST lenses, in every scene
+    assert all(s["lens_light"]["prior"] == "hst_fits" for s in cfg["scenes"].values())
+    assert sim["sources"]["clean"]["enabled"] is True
 
 
 @pytest.mark.slow

@@ -33,6 +33,7 @@ from subslope.io.cosmos import (
 from subslope.physics.light.pixelated import pad_stamps
 
 __all__ = [
+    "SOURCE_COLUMNS",
     "catalog_at",
     "cosmos_folders",
     "source_split",
@@ -44,6 +45,21 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Columns of :func:`source_table`.
+SOURCE_COLUMNS = (
+    "ident",
+    "folder",
+    "mag_auto",
+    "zphot",
+    "nx",
+    "ny",
+    "peak_snr",
+    "footprint_fraction",
+    "noise_fraction",
+    "selected",
+    "split",
+)
 
 
 @functools.lru_cache(maxsize=8)
@@ -153,7 +169,7 @@ def source_table(config: Mapping[str, Any]) -> pd.DataFrame:
         split_of.update({int(i): name for i in ids})
     table["selected"] = table["ident"].isin(list(split_of))
     table["split"] = table["ident"].map(split_of).fillna("")
-    return table
+    return table[list(SOURCE_COLUMNS)]
 
 
 def _key(folders: Sequence[Path]):
@@ -226,6 +242,14 @@ def _noise_cut(config, selected: CosmosCatalog, limit: float) -> CosmosCatalog:
     fracs = _noise_fractions(canonical_json({k: config[k] for k in keys}))
     frac = np.array([fracs[int(i)] for i in selected.idents])
     keep = selected.idents[frac <= limit]
+    dropped = selected.idents[frac > limit]
+    log.info(
+        "COSMOS noise cut (stamp noise <= %g x detector noise): %d of %d galaxies kept; dropped %s",
+        limit,
+        keep.size,
+        frac.size,
+        dropped.tolist()[:20],
+    )
     if keep.size == 0:
         raise ValueError(
             f"no COSMOS galaxy keeps its stamp noise below simulation.sources.clean."

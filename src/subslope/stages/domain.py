@@ -132,8 +132,6 @@ def check_domain(
     ``domain_check.csv`` (one row per HST system: each statistic's percentile,
     ``inside``, ``outside``), ``statistics.csv`` (every image's statistics, ``kind`` sim
     or hst) and ``sources.csv`` (the COSMOS galaxies) to ``out_dir`` and the two figures."""
-    from subslope.simulation.sources import source_table
-
     out_dir = Path(out_dir)
     dom = config["domain"]
     psf, inst = _noise_model(config)
@@ -159,10 +157,7 @@ def check_domain(
         ignore_index=True,
     )
     write_text(out_dir / "statistics.csv", both.to_csv(index=False, float_format="%.6g"))
-    if any(s["source"]["kind"] == "cosmos" for s in _scene_specs(config)):
-        write_text(
-            out_dir / "sources.csv", source_table(config).to_csv(index=False, float_format="%.4g")
-        )
+    _write_sources(config, out_dir / "sources.csv", scene)
     run = config["run_name"]
     save_figure(
         domain_histograms(sim, real, table, STATISTICS, run_name=run, scene=scene),
@@ -178,10 +173,17 @@ def check_domain(
     return table
 
 
-def _scene_specs(config):
+def _write_sources(config: Mapping[str, Any], path: Path, scene: str) -> None:
+    """The COSMOS source table (:func:`subslope.simulation.sources.source_table`); only
+    its header when ``scene`` draws parametric sources."""
     from subslope.simulation.resolve import resolved_scene
+    from subslope.simulation.sources import SOURCE_COLUMNS, source_table
 
-    return [resolved_scene(config, config["domain"]["scene"])[1]]
+    if resolved_scene(config, scene)[0].source.kind == "cosmos":
+        table = source_table(config)
+    else:
+        table = pd.DataFrame(columns=list(SOURCE_COLUMNS))
+    write_text(path, table.to_csv(index=False, float_format="%.4g"))
 
 
 def domain_check_cli(

@@ -1,0 +1,96 @@
+"""Domain check (subslope.validation.domain, subslope.stages.domain, subslope domain-check)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from subslope.validation.domain import STATISTICS, domain_percentiles, image_statistics
+
+REPO = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_percentiles_count_ties_half_and_flag_the_statistics_outside():
+    sim = pd.DataFrame({"a": np.arange(100.0), "b": np.r_[np.zeros(50), np.ones(50)]})
+    real = pd.DataFrame({"a": [-1.0, 10.0, 200.0, np.nan], "b": [0.0, 1.0, 0.5, 0.0]})
+    table = domain_percentiles(sim, real, ["w", "x", "y", "z"], statistics=("a", "b"))
+    np.testing.assert_allclose(table["a_pct"][:3], [0.0, 10.5, 100.0])
+    np.testing.assert_allclose(table["b_pct"], [25.0, 75.0, 50.0, 25.0])
+    assert table["inside"].tolist() == [False, True, False, False]
+    assert table["outside"].tolist() == ["a", "", "a", "a"]  # NaN is never inside
+
+
+def test_statistics_of_simulated_lenses_are_finite_and_as_defined(data_dir):
+    import torch
+
+    from subslope import config as cfgmod
+    from subslope.physics.grid import pixel_grid
+    from subslope.physics.instrument import add_noise
+    from subslope.render.pipeline import RenderSettings, render
+    from subslope.simulation.macro import sample_macro
+    from subslope.simulation.observing import build_instrument, build_psf
+    from subslope.simulation.scenes import Scene
+
+    cfg = cfgmod.validate({"data": {"resources_dir": str(data_dir)}})
+    psf, inst = build_psf(cfg), build_instrument(cfg)
+    scene = Scene.from_config(
+        "train",
+        {
+            "lens_light": {"prior": "hst_fits"},
+            "source": {"kind": "sersic"},
+            "components": {"subhalos": False, "los": False},
+        },
+    )
+    macro = sample_macro(scene, 4, np.random.default_rng(2))
+    s = RenderSettings(device="cpu", dtype=torch.float64, compile="off")
+    images = add_noise(render(macro, torch.as_tensor(psf), s), 3, instrument=inst).numpy()
+    stats = image_statistics(
+        images,
+        macro["theta_e"],
+        psf=psf,
+        background_sigma=inst.background_sigma,
+        exposure_time=inst.total_exposure_time,
+        whitening=(float(images.mean()), float(images.std())),
+        pixel_scale=0.04,
+    )
+    assert list(stats.columns) == ["lens_x", "lens_y", *STATISTICS]
+    assert np.all(np.isfinite(stats[list(STATISTICS)].to_numpy()))
+    xs, ys = (a.numpy() for a in pixel_grid(100, 0.04))
+    k = 1
+    r = np.hypot(xs - stats["lens_x"][k], ys - stats["lens_y"][k])
+    assert stats["flux_centre"][k] == pytest.approx(images[k][r <= 0.3].sum())
+    # the measured centre is the lens's, the fitted magnitude near the drawn one
+    np.testing.assert_allclose(stats["lens_x"], macro["lens_x"], atol=0.03)
+    assert np.median(np.abs(stats["light_mag"] - macro["light_mag"])) < 0.3
+    assert np.all((stats["bright_fraction"] >= 0) & (stats["bright_fraction"] <= 1))
+
+
+@pytest.mark.slow
+def test_domain_check_command_writes_the_table_and_figures(tmp_path, data_dir):
+    import yaml
+
+    from subslope.cli import main
+
+    cfg = yaml.safe_load((REPO / "config" / "tiny.yaml").read_text())
+    cfg = {
+        **cfg,
+        "data": {"resources_dir": str(data_dir), "mirror": str(data_dir)},
+        "simulation": {
+            **cfg.get("simulation", {}),
+            "render": {"compile": "off", "device": "cpu", "batch_size": 2},
+        },
+    }
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "out"
+    assert main(["domain-check", "--config", str(path), "--n", "4", "--out", str(out)]) == 0
+    table = pd.read_csv(out / "domain_check.csv")
+    assert len(table) == 13 and {"system", "inside", "outside"} <= set(table.columns)
+    assert all(f"{s}_pct" in table.columns for s in STATISTICS)
+    for name in ("domain_check.png", "domain_gallery.png", "statistics.csv", "sources.csv"):
+        assert (out / name).is_file(), name
