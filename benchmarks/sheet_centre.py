@@ -5,8 +5,8 @@ image is ``c`` is compensated by a sheet −κ̄ centred at the origin; together
 constant deflection ≈ κ̄·c across the arc (docs/realism.md, "Sheet centre"), which
 shifts the source by that much. This script draws ``--n`` systems of the train scene of
 the reduced config (subhalos on the arc of their smooth model, LoS off), computes κ̄ and
-c in float64 from the members and prints |κ̄ c| (arcsec) per bin of the label γ beside the source-position
-prior (±0.1″). The ``mass_centroid`` sheet leaves none.
+c in float64 from the members and prints |κ̄ c| (arcsec) per bin of the label γ beside
+the source-position prior (±0.1″). The ``mass_centroid`` sheet leaves none.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sheet_centre.py --n 200
 """
