@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 
 import pytest
@@ -382,3 +383,52 @@ def test_active_stages_follow_the_needs():
     on = cfg.active_stages(full)
     assert not on["evaluate"] and not on["calibrate"] and not on["cdm_grid"] and not on["hst"]
     assert on["train"] and on["figures"] and on["summary"] and on["gallery"]
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        (
+            {"scenes": {"train": {"main_lens": {"gamma": {"dist": "fixed", "value": 3.0}}}}},
+            r"scenes.train.main_lens.gamma: support \[3.0, 3.0\] .* within \(1.0, 3.0\)",
+        ),
+        (
+            {
+                "scenes": {
+                    "nfw": {"main_lens": {"gamma": {"dist": "uniform", "low": 1.0, "high": 2}}}
+                }
+            },
+            r"scenes.nfw.main_lens.gamma",
+        ),
+        (
+            {"simulation": {"sources": {"split": {"train": 0.8, "validation": 0.1, "test": 0.05}}}},
+            r"simulation.sources.split.train/validation/test = 0.8/0.1/0.05 must sum to 1",
+        ),
+        (
+            {"simulation": {"sources": {"folder": ["cosmos", "nowhere"]}}},
+            r"simulation.sources.folder: \['nowhere'\] neither a registered data folder",
+        ),
+        ({"hst": {"combine": ["SDSSJ0000+0000"]}}, r"hst.combine: unknown system\(s\)"),
+        ({"hst": {"highlight": ["J0946"]}}, r"hst.highlight: unknown system\(s\) \['J0946'\]"),
+    ],
+)
+def test_plan_problems_seen_before_any_job(tmp_path, data_dir, override, match):
+    """What only the scenes, the registry and the HST catalogue show is refused by
+    `subslope validate-config` (and by the workflow when it loads), naming the key."""
+    from subslope.cli import main
+    from subslope.stages.plan import plan_problems
+
+    base = cfg.validate({"data": {"mirror": str(data_dir), "resources_dir": str(tmp_path)}})
+
+    def merge(a, b):
+        for k, v in b.items():
+            a[k] = merge(dict(a.get(k) or {}), v) if isinstance(v, dict) else v
+        return a
+
+    config = cfg.validate(merge(copy.deepcopy(base), override))
+    problems = plan_problems(config)
+    assert any(re.search(match, p) for p in problems), problems
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    assert main(["validate-config", "-q", str(path)]) == 1
+    assert not plan_problems(base)

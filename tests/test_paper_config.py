@@ -76,6 +76,8 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
         shutil.copytree(
             REPO / folder, tmp_path / folder, ignore=shutil.ignore_patterns("__pycache__")
         )
+    # the full COSMOS catalogue is placed by hand (config/paper.yaml); planning checks it is there
+    (tmp_path / "resources" / "cosmos_23.5_full").mkdir(parents=True)
     env = dict(os.environ, SUBSLOPE_DATA_MIRROR=str(data_dir), OMP_NUM_THREADS="1")
     proc = subprocess.run(
         [str(SNAKEMAKE), "-n", "--profile", "profiles/slurm", "--configfile", "config/paper.yaml"],

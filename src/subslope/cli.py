@@ -38,11 +38,16 @@ __all__ = ["main", "build_parser"]
 
 def _validate_config(args: argparse.Namespace) -> int:
     from subslope.config import ConfigError, load
+    from subslope.stages.plan import plan_problems
 
     try:
         config = load(args.path, env=False)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 1
+    problems = plan_problems(config)
+    if problems:
+        print("error: " + "\n  - ".join(["invalid configuration:", *problems]), file=sys.stderr)
         return 1
     if not args.quiet:
         sys.stdout.write(yaml.safe_dump(config, sort_keys=False))

@@ -19,6 +19,10 @@ try:
 except subslope.config.ConfigError as exc:
     raise WorkflowError(str(exc)) from None
 subslope.config.apply_env_overrides(config)  # SUBSLOPE_DATA_MIRROR -> data.mirror
+# What only the scenes, the data registry and the HST catalogue show, before any job.
+_PROBLEMS = subslope.stages.plan.plan_problems(config)
+if _PROBLEMS:
+    raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(_PROBLEMS))
 
 RESOURCES = config["data"]["resources_dir"]
 REGISTRY = subslope.io.resources.load_registry()

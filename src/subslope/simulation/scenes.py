@@ -162,11 +162,12 @@ def _bool(value: Any, key: str) -> bool:
     return value
 
 
-def _within(p: Prior, key: str, lo: float, hi: float) -> Prior:
+def _within(p: Prior, key: str, lo: float, hi: float, open_: bool = False) -> Prior:
     s_lo, s_hi = p.support
-    if s_lo < lo or s_hi > hi:
+    if (s_lo <= lo or s_hi >= hi) if open_ else (s_lo < lo or s_hi > hi):
+        where = f"({lo}, {hi})" if open_ else f"[{lo}, {hi}]"
         raise SceneError(
-            f"config key {key}: support [{s_lo}, {s_hi}] of the prior must lie within [{lo}, {hi}]"
+            f"config key {key}: support [{s_lo}, {s_hi}] of the prior must lie within {where}"
         )
     return p
 
@@ -469,7 +470,7 @@ def _source_spec(s: Mapping[str, Any], k: str) -> SourceSpec:
 def _main_lens_spec(m: Mapping[str, Any], k: str) -> MainLensSpec:
     main = MainLensSpec(**{p: _prior(m, p, k) for p in ("x", "y", "theta_e", "e1", "e2", "gamma")})
     _within(main.theta_e, f"{k}.theta_e", 1e-6, math.inf)
-    _within(main.gamma, f"{k}.gamma", 1.0, 3.0)
+    _within(main.gamma, f"{k}.gamma", 1.0, 3.0, open_=True)  # the EPL needs 1 < γ < 3
     for p in ("e1", "e2"):
         _within(getattr(main, p), f"{k}.{p}", -1.0, 1.0)
     return main

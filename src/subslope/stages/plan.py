@@ -18,6 +18,7 @@ __all__ = [
     "SHARD_DIR",
     "RUN_ONLY_RENDER_KEYS",
     "derived_seed",
+    "plan_problems",
     "multiplier_label",
     "shard_job_config",
     "shard_jobs",
@@ -112,3 +113,77 @@ def shard_job_config(
         },
         "stages": {name: False for name in _config.STAGE_NEEDS},
     }
+
+
+def plan_problems(config: Mapping[str, Any]) -> list[str]:
+    """Problems of a schema-valid ``config`` that only its scenes, data registry and data
+    catalogue show, each naming the key and what is allowed: every scene must build
+    (:class:`subslope.simulation.scenes.Scene`), the COSMOS split fractions must sum to 1,
+    every COSMOS folder must be a registered data folder or exist, and the HST systems
+    named in ``hst`` must be in the catalogue (when the catalogue is at hand). Called by
+    the workflow when it loads and by ``subslope validate-config``."""
+    from subslope.simulation.scenes import SceneError, scenes_from_config
+
+    config = _config.validate(config)
+    problems: list[str] = []
+    try:
+        scenes_from_config(config.get("scenes"))
+        for name in config["simulation"]["scenes"]:
+            resolved_scene(config, name)
+    except SceneError as exc:
+        problems.append(str(exc))
+    src = config["simulation"]["sources"]
+    split = src["split"]
+    total = sum(float(split[k]) for k in ("train", "validation", "test"))
+    if not split.get("ids") and abs(total - 1.0) > 1e-9:
+        problems.append(
+            "config keys simulation.sources.split.train/validation/test = "
+            f"{split['train']}/{split['validation']}/{split['test']} must sum to 1 "
+            f"(they sum to {total:g})"
+        )
+    problems += _cosmos_folder_problems(config)
+    problems += _hst_name_problems(config)
+    return problems
+
+
+def _cosmos_folder_problems(config: Mapping[str, Any]) -> list[str]:
+    from pathlib import Path
+
+    from subslope.io.resources import load_registry
+
+    folder = config["simulation"]["sources"]["folder"]
+    names = folder if isinstance(folder, list) else [folder]
+    registered = {e.path.split("/", 1)[0] for e in load_registry()}
+    root = Path(config["data"]["resources_dir"])
+    missing = [n for n in names if n.strip("/") not in registered and not (root / n).is_dir()]
+    if not missing:
+        return []
+    return [
+        f"config key simulation.sources.folder: {missing} neither a registered data folder "
+        f"({', '.join(sorted(r for r in registered if r.startswith('cosmos')))}) nor a "
+        f"folder under data.resources_dir = {root}"
+    ]
+
+
+def _hst_name_problems(config: Mapping[str, Any]) -> list[str]:
+    import csv
+    from pathlib import Path
+
+    candidates = [Path(config["data"]["resources_dir"]) / "hst" / "catalog.csv"]
+    if config["data"].get("mirror"):
+        candidates.append(Path(config["data"]["mirror"]) / "hst" / "catalog.csv")
+    catalog = next((p for p in candidates if p.is_file()), None)
+    if catalog is None:
+        return []
+    with open(catalog, newline="", encoding="utf-8") as fh:  # no torch: read the names only
+        known = [row.get("system", "") for row in csv.DictReader(fh)]
+    hst = config["hst"]
+    out = []
+    for key in ("combine", "show", "highlight"):
+        unknown = [s for s in (hst[key] or []) if s not in known]
+        if unknown:
+            out.append(
+                f"config key hst.{key}: unknown system(s) {unknown}; the catalogue "
+                f"{catalog} lists {', '.join(known)}"
+            )
+    return out
