@@ -377,3 +377,40 @@ def test_cli_has_campaign_commands(capsys):
         ]
     )
     assert args.cdm is None and args.hst is None
+
+
+def test_checkpoints_follow_the_content_of_the_shards(tmp_path):
+    """A shard rewritten under the same path (a simulator fix, a new PSF) gets a new
+    checkpoint folder, so training never resumes on other images; a whitening file
+    computed from other contents is refused, naming it."""
+    import json
+
+    from subslope.io.shards import file_sha256
+    from subslope.stages.train import data_fingerprint
+
+    train, val = tmp_path / "train_0.h5", tmp_path / "val_0.h5"
+    train.write_bytes(b"images A")
+    val.write_bytes(b"validation")
+    white = tmp_path / "whitening.json"
+
+    def whitening_of(path):
+        white.write_text(
+            json.dumps(
+                {
+                    "mean": 0.0,
+                    "std": 1.0,
+                    "shards": [{"path": str(path), "sha256": file_sha256(path)}],
+                }
+            )
+        )
+
+    whitening_of(train)
+    first = data_fingerprint([train], [val], white)
+    assert first == data_fingerprint([train], [val], white)
+    train.write_bytes(b"images B")
+    with pytest.raises(ValueError, match=r"whitening.json was computed from other contents"):
+        data_fingerprint([train], [val], white)
+    whitening_of(train)
+    assert data_fingerprint([train], [val], white) != first
+    val.write_bytes(b"validation 2")
+    assert len({first, data_fingerprint([train], [val], white)}) == 2

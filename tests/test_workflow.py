@@ -380,7 +380,7 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
     model, meta = load_estimator(results / "train_estimator" / "model.pt")
     assert meta["whitening"]["std"] > 0
     assert len(pd.read_csv(results / "train_estimator" / "training_log.csv")) >= 1
-    ckpts = list((results / "checkpoints" / "train_estimator").glob("*/last.pt"))
+    ckpts = list((results / "checkpoints" / "train_estimator").rglob("last.pt"))
     assert len(ckpts) == 1  # kept: not a declared output
     with h5py.File(results / "evaluate_profiles" / "test_epl" / "shard_0.h5") as fh:
         assert fh["log_ratio"].shape == (8, 19) and np.all(np.isfinite(fh["gamma_true"][()]))

@@ -5,12 +5,14 @@ import logging
 
 import torch
 
+from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
 from subslope.stages.hst import analyze_hst
 from subslope.stats.intervals import gamma_grid
 
 log_to_file(snakemake.log[0])
 try:
+    verify_files(list(snakemake.input))  # the data files as fetched, or a clear error
     torch.set_num_threads(snakemake.threads)
     hst = snakemake.params.hst
     grid = snakemake.params.gamma_grid

@@ -4,11 +4,13 @@ import logging
 
 import torch
 
+from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
 from subslope.stages.simulate import simulate_shard_job
 
 log_to_file(snakemake.log[0])
 try:
+    verify_files(list(snakemake.input))  # the data files as fetched, or a clear error
     torch.set_num_threads(snakemake.threads)
     multiplier = snakemake.wildcards.get("multiplier")
     simulate_shard_job(

@@ -4,20 +4,31 @@ Every writer of the package goes through :func:`atomic_write`: the content goes 
 temporary file in the destination folder (same file system, so the final
 ``os.replace`` is atomic), which replaces the destination only once it is complete; on
 any error the temporary file is removed and the previous version of the destination,
-if any, is left as it was. The final file gets the permissions of a normally created
-file (``0o666`` less the process umask), not the ``0o600`` of a temporary file.
+if any, is left as it was. A writer killed before it can clean up (SIGKILL) leaves its
+temporary behind; the next write of the same file removes it. The final file gets the
+permissions of a normally created file (``0o666`` less the process umask), not the
+``0o600`` of a temporary file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
+import socket
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_write", "temporary_path", "write_text", "write_csv", "write_json"]
+__all__ = [
+    "atomic_write",
+    "remove_stale_temporaries",
+    "temporary_path",
+    "write_text",
+    "write_csv",
+    "write_json",
+]
 
 
 def _umask() -> int:
@@ -26,11 +37,46 @@ def _umask() -> int:
     return mask
 
 
+def _host() -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in socket.gethostname())
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporaries of ``path`` left by killed writers on this host: the files
+    ``.<name>.<host>.<pid>.*.tmp`` whose process no longer runs. Temporaries of live
+    processes and of other hosts are kept. Returns the paths removed."""
+    path = Path(path)
+    removed = []
+    prefix = f".{path.name}.{_host()}."
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        rest = tmp.name[len(prefix) :] if tmp.name.startswith(prefix) else ""
+        pid = rest.split(".", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
 def temporary_path(path: str | os.PathLike[str]) -> Path:
-    """A new, empty temporary file beside ``path`` (its folder is created)."""
+    """A new, empty temporary file beside ``path`` (its folder is created), named
+    ``.<name>.<host>.<pid>.<random>.tmp``; stale ones of killed writers are removed
+    first (:func:`remove_stale_temporaries`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    remove_stale_temporaries(path)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.{_host()}.{os.getpid()}.", suffix=".tmp", dir=path.parent
+    )
     os.close(fd)
     return Path(tmp)
 

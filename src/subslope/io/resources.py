@@ -36,6 +36,7 @@ __all__ = [
     "verify",
     "fetch",
     "fetch_files",
+    "verify_files",
 ]
 
 log = logging.getLogger(__name__)
@@ -268,3 +269,34 @@ def fetch_files(
     for root, entries in groups.items():
         out += fetch(root, mirror=mirror, allow_download=allow_download, entries=entries)
     return out
+
+
+def verify_files(files) -> int:
+    """Verify the registered data files among ``files`` against the registry (one hash
+    each, cheap next to any job that reads them) and return how many were checked.
+
+    A job calls this before it reads its resources, so a file changed after
+    ``fetch_data`` is refused, naming it and how to recover, instead of being used.
+    Files that are not registered (the full COSMOS catalogue put in place by hand) are
+    left alone."""
+    registry = load_registry()
+    checked = 0
+    for file in files:
+        posix = Path(file).as_posix()
+        matches = [e for e in registry if posix == e.path or posix.endswith("/" + e.path)]
+        if not matches:
+            continue
+        entry = max(matches, key=lambda e: len(e.path))
+        if not Path(file).is_file():
+            raise MissingResourceError(
+                f"data file {file} is missing; run `snakemake -R fetch_data` to fetch it again"
+            )
+        actual = sha256sum(file)
+        if actual != entry.sha256:
+            raise ChecksumError(
+                f"data file {file} changed after it was fetched: sha256 {actual}, the registry "
+                f"has {entry.sha256}; delete it and run `snakemake -R fetch_data` to fetch it "
+                "again"
+            )
+        checked += 1
+    return checked

@@ -8,12 +8,13 @@ import hashlib
 import json
 import os
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from subslope.nre.training_config import WORKFLOW_KEYS, config_hash, resolve_config
 from subslope.stages.plan import derived_seed
 
-__all__ = ["training_section", "checkpoint_key", "run_training"]
+__all__ = ["training_section", "checkpoint_key", "data_fingerprint", "run_training"]
 
 
 def training_section(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -55,6 +56,29 @@ def checkpoint_key(
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:12]
 
 
+def data_fingerprint(train_shards: Sequence, val_shards: Sequence, whitening) -> str:
+    """12 hex digits of the SHA-256 of every training and validation shard's bytes and of
+    the whitening JSON. Refuses a whitening file whose recorded shard checksums are not
+    those of ``train_shards`` now (it was computed from other images)."""
+    from subslope.io.shards import file_sha256
+
+    sums = {os.fspath(p): file_sha256(p) for p in [*train_shards, *val_shards]}
+    if isinstance(whitening, (str, os.PathLike)):
+        recorded = json.loads(Path(whitening).read_text(encoding="utf-8")).get("shards") or []
+        stale = [
+            r["path"]
+            for r in recorded
+            if r.get("path") in sums and r.get("sha256") not in (None, sums[r["path"]])
+        ]
+        if stale:
+            raise ValueError(
+                f"whitening file {os.fspath(whitening)} was computed from other contents of "
+                f"{stale}; rerun its rule (snakemake -R compute_whitening) before training"
+            )
+        sums["whitening"] = file_sha256(whitening)
+    return hashlib.sha256(json.dumps(sums, sort_keys=True).encode()).hexdigest()[:12]
+
+
 def run_training(
     training: Mapping[str, Any],
     train_shards: Sequence,
@@ -66,12 +90,17 @@ def run_training(
     device: str = "auto",
 ) -> dict[str, Any]:
     """Train (resuming from ``ckpt_dir`` when possible); ``out_dir`` gets model.pt +
-    training_log.csv."""
+    training_log.csv.
+
+    The checkpoints live in ``ckpt_dir/data-<fingerprint>`` (:func:`data_fingerprint`):
+    shards whose content changed under the same paths and config start a fresh run
+    instead of resuming one trained on other images."""
     from subslope.nre.train import train
 
     dev = None if device in (None, "auto") else device
+    ckpt = Path(ckpt_dir) / f"data-{data_fingerprint(train_shards, val_shards, whitening)}"
     summary = train(
-        training, list(train_shards), list(val_shards), whitening, out_dir, ckpt_dir, device=dev
+        training, list(train_shards), list(val_shards), whitening, out_dir, ckpt, device=dev
     )
     if not summary["finished"]:
         raise RuntimeError(
