@@ -133,6 +133,17 @@ def test_empty_and_zero_kappa_populations_give_the_origin_and_no_nan():
     assert torch.all(torch.isfinite(ax)) and torch.all(ax == 0) and float(k) == 0.0
 
 
+def test_the_scene_schema_and_the_renderer_know_the_same_sheet_centres():
+    from subslope.config import load_schema
+    from subslope.render.populations import SHEET_CENTRES
+    from subslope.simulation import scenes
+
+    assert scenes.SHEET_CENTRES == SHEET_CENTRES  # twin kept for torch-free planning
+    props = load_schema()["$defs"]["scene"]["properties"]
+    for block in ("subhalos", "los"):
+        assert tuple(props[block]["properties"]["sheet_centre"]["enum"]) == SHEET_CENTRES
+
+
 def test_unknown_sheet_centre_is_refused_naming_the_choices():
     with pytest.raises(ValueError, match="origin.*mass_centroid"):
         Population("epl", torch.zeros(1, 7, 1), np.array([1]), "centre")

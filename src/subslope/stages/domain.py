@@ -29,18 +29,12 @@ from subslope.io.atomic import write_text
 from subslope.io.observations import find_lens_centre, load_hst
 from subslope.io.shards import open_shard
 from subslope.physics.light.fit import fit_lens_light, prior_from_fits
+from subslope.simulation.observing import build_instrument, build_psf
 from subslope.validation.domain import STATISTICS, domain_percentiles, image_statistics
 
 __all__ = ["fit_hst_lens_light", "check_domain", "domain_check_cli", "shard_images"]
 
 log = logging.getLogger(__name__)
-
-
-def _noise_model(config: Mapping[str, Any]):
-    from subslope.simulation.observing import build_instrument, build_psf
-
-    inst = build_instrument(config)
-    return build_psf(config), inst
 
 
 def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior) -> pd.DataFrame:
@@ -51,12 +45,13 @@ def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior
 
     from subslope.simulation.scenes import LENS_LIGHT_PRIORS
 
-    psf, inst = _noise_model(config)
+    psf, inst = build_psf(config), build_instrument(config)
     obs = load_hst(hst_folder)
+    images = np.stack([o.image for o in obs])
     lc = dict(config["hst"]["lens_centre"])
     centres = np.array([find_lens_centre(o.image, pixel_scale=inst.pixel_scale, **lc) for o in obs])
     fit = fit_lens_light(
-        np.stack([o.image for o in obs]),
+        images,
         psf,
         centres,
         np.array([o.theta_e for o in obs]),
@@ -78,8 +73,7 @@ def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior
             "y": fit.y,
             "chi2_dof": fit.chi2_dof,
             "used_fraction": fit.mask.mean((1, 2)),
-            "cutout_mag": inst.magnitude_zero_point
-            - 2.5 * np.log10(np.stack([o.image for o in obs]).sum((1, 2))),
+            "cutout_mag": inst.magnitude_zero_point - 2.5 * np.log10(images.sum((1, 2))),
         }
     )
     write_text(out_csv, table.to_csv(index=False, float_format="%.6g"))
@@ -134,7 +128,7 @@ def check_domain(
     or hst) and ``sources.csv`` (the COSMOS galaxies) to ``out_dir`` and the two figures."""
     out_dir = Path(out_dir)
     dom = config["domain"]
-    psf, inst = _noise_model(config)
+    psf, inst = build_psf(config), build_instrument(config)
     kw = {
         "psf": psf,
         "background_sigma": inst.background_sigma,
