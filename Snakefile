@@ -11,15 +11,40 @@
 #   hst       the 13 real lenses (figures 5, 6) figures   training curves, figures 2, 3
 #   summary   results/summary.md
 #
+# Every output is flagged update(): Snakemake leaves the previous version in place while
+# its job runs (a copy waits in .snakemake/backups/) and puts it back if the job fails,
+# so a rerun that fails on a bad input never costs the good results of the last run. The
+# jobs write through subslope.io.atomic, so an output is either the old or the new file.
+#
 # Run:  snakemake --cores 2                        (config/config.yaml)
 #       snakemake --cores 2 --configfile my.yaml   (another campaign)
 
+from snakemake.exceptions import WorkflowError
 from snakemake.utils import min_version
 
 min_version("9.0")
 
 
-configfile: "config/config.yaml"
+# The campaign config: the --configfile file(s), or config/config.yaml when none is given,
+# each read with the files it names under `base:`, then --config key=value on top. The
+# CLI (`subslope ... --config F`) reads a file the same way (subslope.config.load), so
+# one file name is one campaign (docs/configuration.md).
+import subslope.config
+
+_CONFIG_FILES = [str(f) for f in workflow.overwrite_configfiles] or [
+    "config/config.yaml"
+]
+try:
+    _RAW = {}
+    for _file in _CONFIG_FILES:
+        _RAW = subslope.config.deep_merge(_RAW, subslope.config.read_layers(_file))
+except subslope.config.ConfigError as exc:
+    raise WorkflowError(str(exc)) from None
+# Snakemake's command-line config holds the --configfile keys and --config on top.
+_COMMAND_LINE = dict(workflow.config_settings.overwrite_config or {})
+_COMMAND_LINE.pop(subslope.config.BASE_KEY, None)
+config.clear()
+config.update(subslope.config.deep_merge(_RAW, _COMMAND_LINE))
 
 
 # Wildcards of every rule. Scene names: letters, digits, '_' (no '/', so the CDM pattern

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -19,6 +22,9 @@ import torch
 matplotlib.use("Agg")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+SNAKEMAKE = Path(sys.executable).with_name("snakemake")
+#: The tiny campaign's config on the snakemake command line.
+TINY = ("--configfile", "config/tiny.yaml")
 
 
 def shared_data_dir() -> Path:
@@ -70,3 +76,50 @@ def dtype(request) -> torch.dtype:
 def devices() -> list[str]:
     """CPU always; CUDA when present (for parametrising device tests)."""
     return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def workflow_copy(root: Path) -> Path:
+    """A copy of Snakefile, workflow/, config/ and profiles/ in ``root``, as a user has them."""
+    shutil.copy(REPO_ROOT / "Snakefile", root)
+    shutil.copytree(
+        REPO_ROOT / "workflow", root / "workflow", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    shutil.copytree(REPO_ROOT / "config", root / "config")
+    shutil.copytree(REPO_ROOT / "profiles", root / "profiles")
+    return root
+
+
+def run_snakemake(
+    workdir: Path, *args: str, mirror: Path | None = None, timeout: int = 300
+) -> subprocess.CompletedProcess:
+    """``snakemake *args`` in ``workdir`` (data from ``mirror``), output captured."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    if mirror is not None:
+        env["SUBSLOPE_DATA_MIRROR"] = str(mirror)
+    return subprocess.run(
+        [str(SNAKEMAKE), *args],
+        cwd=workdir,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+@pytest.fixture(scope="session")
+def workdir(tmp_path_factory) -> Path:
+    """A workflow folder (:func:`workflow_copy`) shared by the workflow tests."""
+    if not SNAKEMAKE.exists():
+        pytest.skip(f"snakemake not found next to {sys.executable}")
+    return workflow_copy(tmp_path_factory.mktemp("workflow"))
+
+
+@pytest.fixture(scope="session")
+def tiny_run(workdir):
+    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per session."""
+    data_dir = shared_data_dir()
+    if not data_dir.is_dir():
+        pytest.skip(f"real data folder not found: {data_dir}")
+    proc = run_snakemake(workdir, "--cores", "2", *TINY, mirror=data_dir, timeout=900)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return workdir / "results"

@@ -79,6 +79,7 @@ def test_domain_check_command_writes_the_table_and_figures(tmp_path, data_dir):
     cfg = yaml.safe_load((REPO / "config" / "tiny.yaml").read_text())
     cfg = {
         **cfg,
+        "base": str(REPO / "config" / "config.yaml"),
         "data": {"resources_dir": str(data_dir), "mirror": str(data_dir)},
         "simulation": {
             **cfg.get("simulation", {}),

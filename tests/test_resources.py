@@ -163,19 +163,3 @@ def test_cli_fetch_data(data_dir, tmp_path, capsys):
         == 1
     )
     assert "not found" in capsys.readouterr().err
-
-
-def test_jobs_verify_their_data_files(tmp_path, data_dir):
-    """A data file changed after fetch_data is refused by the job that reads it."""
-    [psf] = res.fetch_files([tmp_path / "psf" / "emp_psf_f814w.fits"], mirror=data_dir)
-    other = tmp_path / "shard_0.h5"
-    other.write_bytes(b"not registered")
-    assert res.verify_files([psf, other]) == 1
-    raw = bytearray(psf.read_bytes())
-    raw[5000:5016] = bytes(b ^ 0xFF for b in raw[5000:5016])
-    psf.write_bytes(bytes(raw))
-    with pytest.raises(res.ChecksumError, match=r"emp_psf_f814w.fits changed after .*fetch_data"):
-        res.verify_files([psf])
-    psf.unlink()
-    with pytest.raises(res.MissingResourceError, match="is missing"):
-        res.verify_files([psf])

@@ -31,7 +31,10 @@ def _write(path, seed=0, n=4, **kw):
 def test_layout_and_roundtrip(tmp_path):
     path = _write(tmp_path / "s.h5")
     with shards.open_shard(path) as s:
-        assert len(s) == 4 and s.images.dtype == np.float32 and s.images.chunks == (1, 20, 20)
+        assert (
+            len(s) == 4 and s.images.dtype == np.float32 and s.images.dataset.chunks == (1, 20, 20)
+        )
+        assert s.images.dataset.fletcher32 and s.file["params/gamma_sub"].fletcher32
         assert s.images.compression == "gzip" and s.images.shuffle
         assert s.attrs["format"] == shards.FORMAT_NAME and s.attrs["complete"] is True
         assert s.attrs["scene_spec"] == {"a": [1, 2]}

@@ -56,7 +56,7 @@ def test_shard_layout(train_shard):
         ):
             assert s.params[key].shape == (n,), key
         assert "c_multiplier" not in s.params
-        assert set(s.sources) == {"ident", "z_phot", "pixel_scale"}
+        assert set(s.sources) == {"ident", "z_phot", "pixel_scale", "mag"}  # renormalised
         assert s.subhalos["counts"].sum() == s.params["n_sub"].sum() == s.subhalos["amp"].size
         assert s.los["counts"].sum() == s.los["z"].size
         a = s.attrs

@@ -10,9 +10,6 @@ the SUBSLOPE_DATA_MIRROR environment variable.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,32 +17,11 @@ import numpy as np
 import pytest
 
 from subslope.figures.data import log_stretch_limits
+from tests.conftest import TINY
+from tests.conftest import run_snakemake as snakemake
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")
-
-
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory) -> Path:
-    """A copy of Snakefile, workflow/ and config/ (the schema symlink dereferenced)."""
-    if not SNAKEMAKE.exists():
-        pytest.skip(f"snakemake not found next to {sys.executable}")
-    root = tmp_path_factory.mktemp("workflow")
-    shutil.copy(REPO / "Snakefile", root)
-    shutil.copytree(
-        REPO / "workflow", root / "workflow", ignore=shutil.ignore_patterns("__pycache__")
-    )
-    shutil.copytree(REPO / "config", root / "config")
-    return root
-
-
-def snakemake(workdir: Path, *args: str, mirror: Path | None = None) -> subprocess.CompletedProcess:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    if mirror is not None:
-        env["SUBSLOPE_DATA_MIRROR"] = str(mirror)
-    return subprocess.run(
-        [str(SNAKEMAKE), *args], cwd=workdir, env=env, capture_output=True, text=True, timeout=300
-    )
 
 
 def test_lint_clean(workdir):
@@ -73,8 +49,8 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
     assert stats["evaluate_profiles"] == sim["validation"]["n_shards"] + sim["test_epl"]["n_shards"]
     assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
     assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
+    assert stats["fetch_data"] == 21  # one job per registered data file
     for rule in (
-        "fetch_data",
         "plot_hst_gallery",
         "compute_whitening",
         "train_estimator",
@@ -128,7 +104,10 @@ def _stages(workdir: Path, gallery: bool, simulate: bool, **more: bool) -> str:
     flags.update({s: more.get(s, simulate) for s in STAGES[2:]})
     name = "stages_" + "".join(str(int(flags[s])) for s in STAGES)
     path = workdir / "config" / f"{name}.yaml"
-    path.write_text("stages:\n" + "".join(f"  {k}: {str(v).lower()}\n" for k, v in flags.items()))
+    path.write_text(
+        "base: config.yaml\nstages:\n"
+        + "".join(f"  {k}: {str(v).lower()}\n" for k, v in flags.items())
+    )
     return str(path)
 
 
@@ -150,7 +129,9 @@ def test_real_run_fetch_and_gallery(workdir, data_dir):
     assert not any(p.is_symlink() for p in resources.rglob("*"))  # copies, not links
     log = (workdir / "logs" / "plot_hst_gallery.log").read_text()
     assert "loaded 13 cutouts" in log and "SDSSJ0946+1006" in log
-    assert (workdir / "logs" / "fetch_data.log").read_text().count("copying from mirror") == 21
+    fetch_logs = list((workdir / "logs" / "fetch_data").rglob("*.log"))
+    assert len(fetch_logs) == 21  # one job per registered file
+    assert all("copying from mirror" in log.read_text() for log in fetch_logs)
     # Up to date afterwards, even with the mirror moved: data are known by checksum.
     proc = snakemake(
         workdir,
@@ -298,7 +279,6 @@ def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
 
 # ---------------------------------------------------------------------------------------
 # the real tiny campaign, run once
-TINY = ("--configfile", "config/tiny.yaml")
 
 FIGURES = (
     "hst_gallery",
@@ -310,19 +290,6 @@ FIGURES = (
     "fig5_hst_profiles",
     "fig6_hst_combined",
 )
-
-
-@pytest.fixture(scope="module")
-def tiny_run(workdir):
-    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per session."""
-    from tests.conftest import shared_data_dir
-
-    data_dir = shared_data_dir()
-    if not data_dir.is_dir():
-        pytest.skip(f"real data folder not found: {data_dir}")
-    proc = snakemake(workdir, "--cores", "2", *TINY, mirror=data_dir)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    return workdir / "results"
 
 
 @pytest.mark.slow

@@ -2,9 +2,10 @@
 
 Commands
 --------
-validate-config PATH
-    Check a workflow config file against the schema; print the full configuration
-    (defaults filled) or the problems, each naming its key.
+validate-config PATH [--cluster]
+    Check a workflow config file as the workflow does when it loads (the file on its
+    ``base``, the schema, the scenes, the data, the devices of this machine unless
+    ``--cluster``); print the full configuration or the problems, each naming its key.
 fetch-data --mirror DIR --dest DIR [--allow-download]
     Materialise the checksummed data files under DIR (as the workflow's fetch_data rule).
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -37,7 +39,7 @@ __all__ = ["main", "build_parser"]
 
 
 def _validate_config(args: argparse.Namespace) -> int:
-    from subslope.config import ConfigError, load
+    from subslope.config import ConfigError, active_stages, load
     from subslope.stages.plan import plan_problems
 
     try:
@@ -46,6 +48,10 @@ def _validate_config(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     problems = plan_problems(config)
+    if not args.cluster:
+        from subslope.devices import device_problems
+
+        problems += device_problems(config, active_stages(config))
     if problems:
         print("error: " + "\n  - ".join(["invalid configuration:", *problems]), file=sys.stderr)
         return 1
@@ -80,21 +86,20 @@ def _load_config(path):
 
 def _simulate(args: argparse.Namespace) -> int:
     from subslope.io.shards import ShardError
-    from subslope.simulation.shard import simulate_shard
+    from subslope.stages.plan import shard_job_config
+    from subslope.stages.simulate import simulate_shard_job
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     config = _load_config(args.config)
     if config is None:
         return 1
     try:
-        path = simulate_shard(
-            config,
-            args.scene,
-            args.shard,
-            args.out,
-            multiplier=args.multiplier,
-            progress=not args.quiet,
-            overwrite=args.overwrite,
+        if os.path.exists(args.out) and not args.overwrite:
+            raise FileExistsError(f"shard {args.out} already exists; pass --overwrite")
+        # The workflow's own job: the same file, byte for byte, as rule simulate_shard.
+        job = shard_job_config(config, args.scene, args.multiplier)
+        path = simulate_shard_job(
+            job, config, args.scene, args.shard, args.out, multiplier=args.multiplier
         )
     except (FileExistsError, ShardError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -255,6 +260,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", help="YAML config file, e.g. config/config.yaml")
     p.add_argument(
         "-q", "--quiet", action="store_true", help="do not print the filled configuration"
+    )
+    p.add_argument(
+        "--cluster",
+        action="store_true",
+        help="the jobs run elsewhere: do not check the devices against this machine",
     )
     p.set_defaults(func=_validate_config)
 

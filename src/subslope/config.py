@@ -38,6 +38,9 @@ __all__ = [
     "cross_key_problems",
     "active_stages",
     "STAGE_NEEDS",
+    "BASE_KEY",
+    "deep_merge",
+    "read_layers",
     "load",
     "apply_env_overrides",
     "canonical_json",
@@ -303,17 +306,22 @@ def apply_env_overrides(config: dict[str, Any]) -> dict[str, Any]:
     return config
 
 
-def load(path: str | os.PathLike[str], *, env: bool = True) -> dict[str, Any]:
-    """Read a YAML config file, fill defaults, validate, and apply environment overrides.
+#: Top-level key of a config file naming the file it is layered over (relative to it).
+BASE_KEY = "base"
 
-    Parameters
-    ----------
-    path:
-        YAML file (an empty file means "all defaults").
-    env:
-        Apply :func:`apply_env_overrides` after validation (default True).
-    """
-    path = Path(path)
+
+def deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``top`` merged in: mappings key by key, any other value replaced."""
+    out = copy.deepcopy(dict(base))
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
     try:
         with open(path, encoding="utf-8") as handle:
             raw = yaml.safe_load(handle)
@@ -322,10 +330,69 @@ def load(path: str | os.PathLike[str], *, env: bool = True) -> dict[str, Any]:
     except yaml.YAMLError as exc:
         raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
     raw = {} if raw is None else raw
+    if not isinstance(raw, Mapping):
+        raise ConfigError(
+            f"config file {path} must hold a mapping of keys, not {type(raw).__name__}"
+        )
+    return dict(raw)
+
+
+def read_layers(path: str | os.PathLike[str], _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The raw keys of a config file with the files it is layered over.
+
+    A file's ``base: other.yaml`` (a path relative to the file) names the file it sits on:
+    that file's keys are read first (with its own base, if any) and this file's keys are
+    merged over them (:func:`deep_merge`). A file without ``base`` sits on the schema
+    defaults alone. This is the one way a config file is read: ``snakemake
+    --configfile F``, ``subslope <command> --config F`` and ``subslope validate-config F``
+    all see the same campaign.
+    """
+    path = Path(path)
+    if path.resolve() in _seen:
+        chain = " -> ".join(str(p) for p in (*_seen, path.resolve()))
+        raise ConfigError(f"config key {BASE_KEY} of {path} makes a cycle: {chain}")
+    raw = _read_yaml(path)
+    base = raw.pop(BASE_KEY, None)
+    if base is None:
+        return raw
+    if not isinstance(base, str) or not base:
+        raise ConfigError(
+            f"config key {BASE_KEY} = {base!r} in {path}: need the path of a config file "
+            "(relative to this file)"
+        )
+    base_path = path.parent / base
+    if not base_path.is_file():
+        raise ConfigError(f"config key {BASE_KEY} = {base!r} in {path}: no such file {base_path}")
+    return deep_merge(read_layers(base_path, (*_seen, path.resolve())), raw)
+
+
+def load(
+    path: str | os.PathLike[str] | list[str | os.PathLike[str]],
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    env: bool = True,
+) -> dict[str, Any]:
+    """Read config file(s), fill defaults, validate, and apply environment overrides.
+
+    Parameters
+    ----------
+    path:
+        YAML file, or several merged in order (an empty file means "all defaults");
+        each is read with the files it names under ``base`` (:func:`read_layers`).
+    overrides:
+        Keys merged over the files (``snakemake --config key=value``).
+    env:
+        Apply :func:`apply_env_overrides` after validation (default True).
+    """
+    paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
+    raw: dict[str, Any] = {}
+    for p in paths:
+        raw = deep_merge(raw, read_layers(p))
+    raw = deep_merge(raw, overrides or {})
     try:
         config = validate(raw)
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise ConfigError(f"{', '.join(str(p) for p in paths)}: {exc}") from None
     return apply_env_overrides(config) if env else config
 
 

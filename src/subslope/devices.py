@@ -8,7 +8,14 @@ work with a message that names the config key it came from.
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "pick_device"]
+__all__ = ["DEVICE_KEYS", "DeviceError", "device_problems", "pick_device"]
+
+#: The config keys that name a torch device, with the stage whose jobs use each.
+DEVICE_KEYS = {
+    "simulation.render.device": "simulate",
+    "training.device": "train",
+    "inference.device": "evaluate",
+}
 
 
 class DeviceError(RuntimeError):
@@ -34,3 +41,26 @@ def pick_device(name=None, *, key: str | None = None):
             f"CUDA build: {torch.version.cuda or 'none'}); use 'cpu' or 'auto'"
         )
     return device
+
+
+def device_problems(config, stages=None) -> list[str]:
+    """The device requests of ``config`` (:data:`DEVICE_KEYS`) this machine cannot serve,
+    one message per key, for the stages that run (``stages``: ``{stage: runs}``, default
+    all). Only a request for CUDA imports torch, so a config of ``auto``/``cpu`` devices is
+    checked without it. The workflow calls this when it loads for a local run; on a
+    cluster the job checks its own device when it starts (:func:`pick_device`)."""
+    problems = []
+    for key, stage in DEVICE_KEYS.items():
+        if stages is not None and not stages.get(stage, True):
+            continue
+        section, _, name = key.rpartition(".")
+        node = config
+        for part in section.split("."):
+            node = node.get(part, {})
+        value = node.get(name)
+        if isinstance(value, str) and value.startswith("cuda"):
+            try:
+                pick_device(value, key=key)
+            except DeviceError as exc:
+                problems.append(str(exc))
+    return problems

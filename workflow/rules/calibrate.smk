@@ -6,7 +6,7 @@ rule calibrate_threshold:
     input:
         profiles=calibration_inputs,
     output:
-        npz="results/calibrate_threshold/N{n}.npz",
+        npz=update("results/calibrate_threshold/N{n}.npz"),
     log:
         "logs/calibrate_threshold/N{n}.log",
     benchmark:
@@ -29,13 +29,15 @@ rule summarize_coverage:
     input:
         npz=expand(rules.calibrate_threshold.output.npz, n=CAL_N),
     output:
-        csv="results/summarize_coverage/calibration.csv",
-        json="results/summarize_coverage/thresholds.json",
-        pdf="results/figures/coverage.pdf",
-        png=report(
-            "results/figures/coverage.png",
-            caption="../report/coverage.rst",
-            category="Calibration",
+        csv=update("results/summarize_coverage/calibration.csv"),
+        json=update("results/summarize_coverage/thresholds.json"),
+        pdf=update("results/figures/coverage.pdf"),
+        png=update(
+            report(
+                "results/figures/coverage.png",
+                caption="../report/coverage.rst",
+                category="Calibration",
+            )
         ),
     log:
         "logs/summarize_coverage.log",

@@ -6,13 +6,15 @@ rule measure_cdm_grid:
     input:
         profiles=cdm_inputs(),
     output:
-        npz="results/measure_cdm_grid/cdm_grid.npz",
-        csv="results/measure_cdm_grid/cdm_grid.csv",
-        pdf="results/figures/fig4_concentration_grid.pdf",
-        png=report(
-            "results/figures/fig4_concentration_grid.png",
-            caption="../report/fig4_concentration_grid.rst",
-            category="CDM",
+        npz=update("results/measure_cdm_grid/cdm_grid.npz"),
+        csv=update("results/measure_cdm_grid/cdm_grid.csv"),
+        pdf=update("results/figures/fig4_concentration_grid.pdf"),
+        png=update(
+            report(
+                "results/figures/fig4_concentration_grid.png",
+                caption="../report/fig4_concentration_grid.rst",
+                category="CDM",
+            )
         ),
     log:
         "logs/measure_cdm_grid.log",

@@ -1,10 +1,12 @@
 # Shared set-up: configuration validation and helpers used by every stage.
 
 import os
+import re
 
 from snakemake.logging import logger
 from snakemake.exceptions import WorkflowError
 
+import subslope.devices
 import subslope.stages.plan
 import subslope.config
 import subslope.io.resources
@@ -23,6 +25,27 @@ subslope.config.apply_env_overrides(config)  # SUBSLOPE_DATA_MIRROR -> data.mirr
 _PROBLEMS = subslope.stages.plan.plan_problems(config)
 if _PROBLEMS:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(_PROBLEMS))
+
+
+# Before the first job, once the executor is known: a device this machine cannot serve
+# (training.device: cuda without CUDA) on a local run, where the jobs run here; GPU
+# requests on a SLURM cluster without GPUs. A cluster job checks its own node's device
+# when it starts (subslope.devices.pick_device).
+onstart:
+    problems = []
+    if workflow.remote_exec:
+        pass
+    elif workflow.executor_plugin.name == "slurm":
+        problems = subslope.stages.plan.slurm_gpu_problems(config)
+    elif workflow.local_exec:
+        problems = subslope.devices.device_problems(
+            config, subslope.config.active_stages(config)
+        )
+    if problems:
+        raise WorkflowError(
+            "invalid configuration:\n  - " + "\n  - ".join(problems)
+        )
+
 
 RESOURCES = config["data"]["resources_dir"]
 REGISTRY = subslope.io.resources.load_registry()
@@ -228,7 +251,7 @@ def benchmark_files():
 
 def all_targets():
     """Final outputs of the stages switched on in config['stages']."""
-    targets = list(rules.fetch_data.output)
+    targets = resource_files("")
     if STAGE_ON["gallery"]:
         targets += rules.plot_hst_gallery.output
     if STAGE_ON["simulate"]:
@@ -264,9 +287,7 @@ SUMMARY_CSVS = ["hst_result", "cdm_prediction", "coverage", "trend", "stage_runt
 CONFIG_HASH = subslope.config.config_hash(
     {k: v for k, v in config.items() if k != "data"}
 )[:16]
-CONFIG_FILES = [
-    os.path.relpath(f) for f in (workflow.overwrite_configfiles or workflow.configfiles)
-]
+CONFIG_FILES = [os.path.relpath(f) for f in _CONFIG_FILES]
 
 
 def summary_inputs(wildcards):

@@ -6,11 +6,11 @@
 
 rule fit_lens_light:
     input:
-        hst=rules.fetch_data.output.hst,
-        psf=rules.fetch_data.output.psf,
+        hst=resource_files("hst/"),
+        psf=resource_files("psf/"),
     output:
-        csv="results/fit_lens_light/lens_light_fits.csv",
-        prior="results/fit_lens_light/lens_light_prior.yaml",
+        csv=update("results/fit_lens_light/lens_light_fits.csv"),
+        prior=update("results/fit_lens_light/lens_light_prior.yaml"),
     log:
         "logs/fit_lens_light.log",
     benchmark:
@@ -35,24 +35,28 @@ rule check_domain:
     input:
         shards=lambda wildcards: domain_shards(),
         whitening=rules.compute_whitening.output.json,
-        hst=rules.fetch_data.output.hst,
-        psf=rules.fetch_data.output.psf,
+        hst=resource_files("hst/"),
+        psf=resource_files("psf/"),
         cosmos=cosmos_files(),
     output:
-        csv="results/check_domain/domain_check.csv",
-        statistics="results/check_domain/statistics.csv",
-        sources="results/check_domain/sources.csv",
-        pdf="results/figures/domain_check.pdf",
-        png=report(
-            "results/figures/domain_check.png",
-            caption="../report/domain_check.rst",
-            category="Simulation",
+        csv=update("results/check_domain/domain_check.csv"),
+        statistics=update("results/check_domain/statistics.csv"),
+        sources=update("results/check_domain/sources.csv"),
+        pdf=update("results/figures/domain_check.pdf"),
+        png=update(
+            report(
+                "results/figures/domain_check.png",
+                caption="../report/domain_check.rst",
+                category="Simulation",
+            )
         ),
-        gallery_pdf="results/figures/domain_gallery.pdf",
-        gallery_png=report(
-            "results/figures/domain_gallery.png",
-            caption="../report/domain_gallery.rst",
-            category="Simulation",
+        gallery_pdf=update("results/figures/domain_gallery.pdf"),
+        gallery_png=update(
+            report(
+                "results/figures/domain_gallery.png",
+                caption="../report/domain_gallery.rst",
+                category="Simulation",
+            )
         ),
     log:
         "logs/check_domain.log",

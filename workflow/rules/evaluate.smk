@@ -8,7 +8,7 @@ rule evaluate_profiles:
         shard="results/simulate_shard/{scene}/shard_{shard}.h5",
         model=rules.train_estimator.output.model,
     output:
-        h5="results/evaluate_profiles/{scene}/shard_{shard}.h5",
+        h5=update("results/evaluate_profiles/{scene}/shard_{shard}.h5"),
     log:
         "logs/evaluate_profiles/{scene}/shard_{shard}.log",
     benchmark:
@@ -34,7 +34,7 @@ use rule evaluate_profiles as evaluate_cdm_profiles with:
         shard="results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5",
         model=rules.train_estimator.output.model,
     output:
-        h5="results/evaluate_profiles/{scene}/a{multiplier}/shard_{shard}.h5",
+        h5=update("results/evaluate_profiles/{scene}/a{multiplier}/shard_{shard}.h5"),
     log:
         "logs/evaluate_profiles/{scene}/a{multiplier}/shard_{shard}.log",
     benchmark:

@@ -6,11 +6,13 @@ rule plot_training_curves:
     input:
         log_csv=rules.train_estimator.output.log_csv,
     output:
-        pdf="results/figures/training_curves.pdf",
-        png=report(
-            "results/figures/training_curves.png",
-            caption="../report/training_curves.rst",
-            category="Training",
+        pdf=update("results/figures/training_curves.pdf"),
+        png=update(
+            report(
+                "results/figures/training_curves.png",
+                caption="../report/training_curves.rst",
+                category="Training",
+            )
         ),
     log:
         "logs/plot_training_curves.log",
@@ -31,18 +33,22 @@ rule plot_validation:
         stacks=lambda wildcards: profile_files(CAL["stack_scene"]),
         thresholds=rules.summarize_coverage.output.json,
     output:
-        trend="results/plot_validation/trend.json",
-        fig2_pdf="results/figures/fig2_validation.pdf",
-        fig2_png=report(
-            "results/figures/fig2_validation.png",
-            caption="../report/fig2_validation.rst",
-            category="Validation",
+        trend=update("results/plot_validation/trend.json"),
+        fig2_pdf=update("results/figures/fig2_validation.pdf"),
+        fig2_png=update(
+            report(
+                "results/figures/fig2_validation.png",
+                caption="../report/fig2_validation.rst",
+                category="Validation",
+            )
         ),
-        fig3_pdf="results/figures/fig3_stacks.pdf",
-        fig3_png=report(
-            "results/figures/fig3_stacks.png",
-            caption="../report/fig3_stacks.rst",
-            category="Validation",
+        fig3_pdf=update("results/figures/fig3_stacks.pdf"),
+        fig3_png=update(
+            report(
+                "results/figures/fig3_stacks.png",
+                caption="../report/fig3_stacks.rst",
+                category="Validation",
+            )
         ),
     log:
         "logs/plot_validation.log",

@@ -3,13 +3,15 @@
 
 rule plot_hst_gallery:
     input:
-        hst=rules.fetch_data.output.hst,
+        hst=resource_files("hst/"),
     output:
-        pdf="results/figures/hst_gallery.pdf",
-        png=report(
-            "results/figures/hst_gallery.png",
-            caption="../report/hst_gallery.rst",
-            category="Data",
+        pdf=update("results/figures/hst_gallery.pdf"),
+        png=update(
+            report(
+                "results/figures/hst_gallery.png",
+                caption="../report/hst_gallery.rst",
+                category="Data",
+            )
         ),
     log:
         "logs/plot_hst_gallery.log",

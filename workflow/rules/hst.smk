@@ -4,25 +4,29 @@
 
 rule analyze_hst:
     input:
-        hst=rules.fetch_data.output.hst,
+        hst=resource_files("hst/"),
         model=rules.train_estimator.output.model,
         thresholds=rules.summarize_coverage.output.json,
         cdm=rules.measure_cdm_grid.output.csv if STAGE_ON["cdm_grid"] else [],
         domain=rules.check_domain.output.csv if STAGE_ON["domain"] else [],
     output:
-        h5="results/analyze_hst/profiles.h5",
-        csv="results/analyze_hst/intervals.csv",
-        fig5_pdf="results/figures/fig5_hst_profiles.pdf",
-        fig5_png=report(
-            "results/figures/fig5_hst_profiles.png",
-            caption="../report/fig5_hst_profiles.rst",
-            category="HST",
+        h5=update("results/analyze_hst/profiles.h5"),
+        csv=update("results/analyze_hst/intervals.csv"),
+        fig5_pdf=update("results/figures/fig5_hst_profiles.pdf"),
+        fig5_png=update(
+            report(
+                "results/figures/fig5_hst_profiles.png",
+                caption="../report/fig5_hst_profiles.rst",
+                category="HST",
+            )
         ),
-        fig6_pdf="results/figures/fig6_hst_combined.pdf",
-        fig6_png=report(
-            "results/figures/fig6_hst_combined.png",
-            caption="../report/fig6_hst_combined.rst",
-            category="HST",
+        fig6_pdf=update("results/figures/fig6_hst_combined.pdf"),
+        fig6_png=update(
+            report(
+                "results/figures/fig6_hst_combined.png",
+                caption="../report/fig6_hst_combined.rst",
+                category="HST",
+            )
         ),
     log:
         "logs/analyze_hst.log",

@@ -7,10 +7,10 @@
 
 rule simulate_shard:
     input:
-        psf=rules.fetch_data.output.psf,
+        psf=resource_files("psf/"),
         cosmos=cosmos_files(),
     output:
-        h5="results/simulate_shard/{scene}/shard_{shard}.h5",
+        h5=update("results/simulate_shard/{scene}/shard_{shard}.h5"),
     log:
         "logs/simulate_shard/{scene}/shard_{shard}.log",
     benchmark:
@@ -31,7 +31,7 @@ rule simulate_shard:
 
 use rule simulate_shard as simulate_cdm_shard with:
     output:
-        h5="results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5",
+        h5=update("results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5"),
     log:
         "logs/simulate_shard/{scene}/a{multiplier}/shard_{shard}.log",
     benchmark:
@@ -42,7 +42,7 @@ rule compute_whitening:
     input:
         shards=lambda wildcards: shard_files("train"),
     output:
-        json="results/compute_whitening/whitening.json",
+        json=update("results/compute_whitening/whitening.json"),
     log:
         "logs/compute_whitening.log",
     benchmark:
@@ -61,10 +61,12 @@ rule plot_scene_examples:
         shard=lambda wildcards: example_shard(wildcards.scene),
         cosmos=cosmos_files(),
     output:
-        png=report(
-            "results/figures/scene_examples_{scene}.png",
-            caption="../report/scene_examples.rst",
-            category="Simulation",
+        png=update(
+            report(
+                "results/figures/scene_examples_{scene}.png",
+                caption="../report/scene_examples.rst",
+                category="Simulation",
+            )
         ),
     log:
         "logs/plot_scene_examples/{scene}.log",

@@ -6,8 +6,8 @@ rule write_summary:
     input:
         unpack(summary_inputs),
     output:
-        md="results/summary.md",
-        csv=expand("results/{name}.csv", name=SUMMARY_CSVS),
+        md=update("results/summary.md"),
+        csv=update(expand("results/{name}.csv", name=SUMMARY_CSVS)),
     log:
         "logs/write_summary.log",
     conda:

@@ -24,8 +24,8 @@ rule train_estimator:
         val=lambda wildcards: shard_files("validation"),
         whitening=rules.compute_whitening.output.json,
     output:
-        model="results/train_estimator/model.pt",
-        log_csv="results/train_estimator/training_log.csv",
+        model=update("results/train_estimator/model.pt"),
+        log_csv=update("results/train_estimator/training_log.csv"),
     log:
         "logs/train_estimator.log",
     benchmark:

@@ -5,6 +5,7 @@ import logging
 
 import torch
 
+from subslope.devices import pick_device
 from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
 from subslope.stages.hst import analyze_hst
@@ -12,6 +13,9 @@ from subslope.stats.intervals import gamma_grid
 
 log_to_file(snakemake.log[0])
 try:
+    pick_device(
+        snakemake.params.device, key="inference.device"
+    )  # a device this machine lacks fails here
     verify_files(list(snakemake.input))  # the data files as fetched, or a clear error
     torch.set_num_threads(snakemake.threads)
     hst = snakemake.params.hst

@@ -5,12 +5,16 @@ import logging
 
 import torch
 
+from subslope.devices import pick_device
 from subslope.logs import log_to_file
 from subslope.stages.evaluate import evaluate_shard
 from subslope.stats.intervals import gamma_grid
 
 log_to_file(snakemake.log[0])
 try:
+    pick_device(
+        snakemake.params.device, key="inference.device"
+    )  # a device this machine lacks fails here
     torch.set_num_threads(snakemake.threads)
     grid = snakemake.params.gamma_grid
     path = evaluate_shard(

@@ -6,11 +6,15 @@ import os
 
 import torch
 
+from subslope.devices import pick_device
 from subslope.logs import log_to_file
 from subslope.stages.train import run_training
 
 log_to_file(snakemake.log[0])
 try:
+    pick_device(
+        snakemake.params.device, key="training.device"
+    )  # a device this machine lacks fails here
     torch.set_num_threads(snakemake.threads)
     logging.info(
         "checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir

@@ -7,14 +7,18 @@ any error the temporary file is removed and the previous version of the destinat
 if any, is left as it was. A writer killed before it can clean up (SIGKILL) leaves its
 temporary behind; the next write of the same file removes it. The final file gets the
 permissions of a normally created file (``0o666`` less the process umask), not the
-``0o600`` of a temporary file.
+``0o600`` of a temporary file. A write that runs out of disk space raises
+:class:`DiskFullError`, naming the file, its file system and the space left there, and
+leaves neither a partial file nor a temporary behind.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import os
+import shutil
 import socket
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
@@ -22,6 +26,9 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "DiskFullError",
+    "ResultFileError",
+    "read_json",
     "atomic_write",
     "remove_stale_temporaries",
     "temporary_path",
@@ -29,6 +36,53 @@ __all__ = [
     "write_csv",
     "write_json",
 ]
+
+
+class DiskFullError(OSError):
+    """A result could not be written: its file system is full."""
+
+
+class ResultFileError(ValueError):
+    """A result file cannot be read: truncated, corrupt or changed after it was written."""
+
+
+def read_json(path: str | os.PathLike[str]) -> Any:
+    """The content of a JSON result file written by :func:`write_json`; a file that is
+    not valid JSON raises :class:`ResultFileError` naming it and how to recover."""
+    import json
+
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ResultFileError(
+            f"{path} is not valid JSON ({exc}): it was cut short or changed after it was "
+            "written; delete it and run snakemake again to write it anew"
+        ) from None
+
+
+def _mount_point(path: Path) -> Path:
+    path = path.resolve()
+    while not os.path.ismount(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _disk_full(exc: BaseException, folder: Path) -> bool:
+    """Whether ``exc`` is a failed write for want of space: ``ENOSPC`` (HDF5 has it in
+    its message only), or torch's
+    "unexpected pos" (its zip writer's report of a short write) on a nearly full disk."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    if "No space left on device" in str(exc):  # HDF5 reports it in its message only
+        return True
+    if isinstance(exc, RuntimeError) and "unexpected pos" in str(exc):
+        try:
+            return shutil.disk_usage(folder).free < 64 * 2**20
+        except OSError:
+            return False
+    return False
 
 
 def _umask() -> int:
@@ -97,6 +151,17 @@ def atomic_write(path: str | os.PathLike[str]) -> Iterator[Path]:
         yield tmp
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except (OSError, RuntimeError) as exc:
+        if not _disk_full(exc, path.parent):
+            raise
+        tmp.unlink(missing_ok=True)
+        free = shutil.disk_usage(path.parent).free
+        raise DiskFullError(
+            errno.ENOSPC,
+            f"no space left to write {path}: the file system mounted at "
+            f"{_mount_point(path.parent)} has {free / 2**20:.1f} MiB free; free space "
+            f"there and run again (nothing was written: {path} is as it was)",
+        ) from exc
     finally:
         tmp.unlink(missing_ok=True)
 

@@ -11,7 +11,10 @@ SHA-256, public URL). :func:`fetch` materialises them under a destination folder
 
 Every file is written to a temporary name beside its destination, verified against the
 registry checksum and only then renamed into place (atomic on POSIX), so a failure never
-leaves a half-written or unverified file at the destination. ``hst/catalog.csv`` was
+leaves a half-written or unverified file at the destination. Every fetched file gets the
+same fixed time stamp (:data:`FETCHED_MTIME`): a file is its checksum, so fetching the
+same bytes again must not look newer than the results made from them (Snakemake reruns
+the jobs whose inputs are newer than their outputs). ``hst/catalog.csv`` was
 compiled for this project and has no upstream URL: it is mirror-only.
 """
 
@@ -109,6 +112,10 @@ def verify(path: str | os.PathLike[str], expected: str, *, name: str | None = No
         )
 
 
+#: Modification time given to every fetched file (2000-01-01 UTC, seconds since the epoch).
+FETCHED_MTIME = 946_684_800
+
+
 def _default_mode() -> int:
     """Permissions of an ordinary new file under the current umask (mkstemp uses 0600)."""
     umask = os.umask(0)
@@ -121,6 +128,7 @@ def _install(tmp: Path, dest: Path, entry: RegistryEntry, origin: str) -> None:
     try:
         verify(tmp, entry.sha256, name=f"{entry.path} from {origin}")
         os.chmod(tmp, _default_mode())
+        os.utime(tmp, (FETCHED_MTIME, FETCHED_MTIME))
         os.replace(tmp, dest)
     finally:
         tmp.unlink(missing_ok=True)
@@ -289,14 +297,13 @@ def verify_files(files) -> int:
         entry = max(matches, key=lambda e: len(e.path))
         if not Path(file).is_file():
             raise MissingResourceError(
-                f"data file {file} is missing; run `snakemake -R fetch_data` to fetch it again"
+                f"data file {file} is missing; run snakemake again to fetch it"
             )
         actual = sha256sum(file)
         if actual != entry.sha256:
             raise ChecksumError(
                 f"data file {file} changed after it was fetched: sha256 {actual}, the registry "
-                f"has {entry.sha256}; delete it and run `snakemake -R fetch_data` to fetch it "
-                "again"
+                f"has {entry.sha256}; delete it and run snakemake again to fetch it"
             )
         checked += 1
     return checked

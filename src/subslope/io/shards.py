@@ -24,6 +24,11 @@ sections), ``seed_entropy`` and ``seed_spawn_key`` (the numpy SeedSequence of th
 shard), ``package_version``, ``n_images``, ``render_settings`` (JSON),
 ``subhalo_profile`` / ``los_profile`` and, written last, ``complete = True``.
 
+Every dataset carries HDF5's Fletcher-32 checksum (per chunk, so per image for
+``images``), verified by HDF5 on every read: a corrupted byte anywhere (an image, a label)
+fails the read that touches it, and :class:`CheckedRows` turns that failure into a
+:class:`ShardError` naming the file, the dataset and the first bad row.
+
 Writing is atomic (:func:`subslope.io.atomic.atomic_write`: a temporary file beside the
 shard, renamed once complete); an existing shard is never overwritten unless asked. No time stamps
 are stored (``track_times=False``), so the same inputs give a byte-identical file.
@@ -52,6 +57,9 @@ __all__ = [
     "FORMAT_VERSION",
     "REQUIRED_DATASETS",
     "ShardError",
+    "CheckedRows",
+    "open_hdf5",
+    "verify_shard",
     "Shard",
     "write_shard",
     "open_shard",
@@ -61,7 +69,7 @@ __all__ = [
 ]
 
 FORMAT_NAME = "subslope-shard"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 #: Datasets every shard has (the estimator relies on these names).
 REQUIRED_DATASETS = (
@@ -106,7 +114,7 @@ def _dataset(group: h5py.Group, name: str, data: np.ndarray, **kwargs) -> None:
         data = data.astype(np.int64)
     elif data.dtype.kind == "b":
         data = data.astype(np.int8)
-    group.create_dataset(name, data=data, track_times=False, **kwargs)
+    group.create_dataset(name, data=data, track_times=False, fletcher32=data.size > 0, **kwargs)
 
 
 def write_shard(
@@ -157,7 +165,12 @@ def write_shard(
     with atomic_write(path) as tmp, h5py.File(tmp, "w", track_order=False) as f:
         chunks = (1, h, w) if n else None
         f.create_dataset(
-            "images", data=images, chunks=chunks, track_times=False, **(comp if n else {})
+            "images",
+            data=images,
+            chunks=chunks,
+            track_times=False,
+            fletcher32=bool(n),
+            **(comp if n else {}),
         )
         _dataset(f, "psf", np.asarray(psf, dtype=np.float64))
         for group, arrays in (
@@ -203,6 +216,77 @@ def _check_arrays(path, n: int, params, sources, subhalos, los) -> None:
         raise ShardError(f"{path}: missing required parameter(s) {missing}")
 
 
+def _recovery(path) -> str:
+    return (
+        f"delete {path} and run snakemake again to simulate it anew (the same seed gives "
+        "the same shard), or restore it from a copy"
+    )
+
+
+def open_hdf5(path: str | os.PathLike[str]) -> h5py.File:
+    """``h5py.File(path, "r")``; a missing, truncated or corrupt file raises
+    :class:`ShardError` naming it (HDF5's own message does not) and how to recover."""
+    if not Path(path).is_file():
+        raise ShardError(f"shard file not found: {path}")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise ShardError(
+            f"{path} is not a readable HDF5 file (truncated or corrupt: {exc}); {_recovery(path)}"
+        ) from None
+
+
+class CheckedRows:
+    """Reads of one dataset of a shard that name the file, the dataset and the first row
+    that cannot be read (a checksum mismatch or a truncated file) in a :class:`ShardError`,
+    instead of HDF5's bare "filter returned failure during read". Slice it like the
+    dataset (``rows[lo:hi]``, ``rows[k]``, ``rows[...]``)."""
+
+    def __init__(self, path: str | os.PathLike[str], dataset: h5py.Dataset):
+        self.path = Path(path)
+        self.dataset = dataset
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.dataset.shape
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.dataset.dtype
+
+    def __len__(self) -> int:
+        return self.dataset.shape[0]
+
+    def __getattr__(self, name: str):  # chunks, compression, attrs, ...: the dataset's
+        if name == "dataset":
+            raise AttributeError(name)
+        return getattr(self.dataset, name)
+
+    def __getitem__(self, key):
+        try:
+            return self.dataset[key]
+        except OSError as exc:
+            raise ShardError(self._message(key, exc)) from None
+
+    def _message(self, key, exc: OSError) -> str:
+        name = self.dataset.name.lstrip("/")
+        rows = range(len(self)) if self.dataset.shape else range(0)
+        if isinstance(key, slice):
+            rows = rows[key]
+        elif isinstance(key, (int, np.integer)):
+            rows = rows[int(key) : int(key) + 1]
+        for k in rows:
+            try:
+                self.dataset[k]
+            except OSError:
+                what = "image" if name == "images" else "row"
+                return (
+                    f"{self.path}: {name} {what} {k} cannot be read ({exc}): the file is "
+                    f"corrupt; {_recovery(self.path)}"
+                )
+        return f"{self.path}: dataset {name} cannot be read ({exc}); {_recovery(self.path)}"
+
+
 class Shard:
     """A validated, read-only shard. Use as a context manager or call :meth:`close`.
 
@@ -229,18 +313,20 @@ class Shard:
         return int(self.attrs["n_images"])
 
     @property
-    def images(self) -> h5py.Dataset:
+    def images(self) -> CheckedRows:
         """The ``images`` dataset (N, H, W) float32 (read slices of it)."""
-        return self.file["images"]
+        return CheckedRows(self.path, self.file["images"])
 
     @property
     def psf(self) -> np.ndarray:
-        return self.file["psf"][()]
+        return CheckedRows(self.path, self.file["psf"])[()]
 
     def group(self, name: str) -> dict[str, np.ndarray]:
         if name not in self._cache:
             g = self.file.get(name)
-            self._cache[name] = {} if g is None else {k: g[k][()] for k in g}
+            self._cache[name] = (
+                {} if g is None else {k: CheckedRows(self.path, g[k])[()] for k in g}
+            )
         return self._cache[name]
 
     @property
@@ -296,14 +382,7 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
     the datasets of :data:`REQUIRED_DATASETS` present with ``n_images`` rows.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ShardError(f"shard file not found: {path}")
-    try:
-        handle = h5py.File(path, "r")
-    except OSError as exc:
-        raise ShardError(
-            f"{path} is not a readable HDF5 file (truncated or corrupt?): {exc}"
-        ) from None
+    handle = open_hdf5(path)
     try:
         fmt = _decode(handle.attrs.get("format"))
         if fmt != FORMAT_NAME:
@@ -315,7 +394,7 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
         if version != FORMAT_VERSION:
             raise ShardError(
                 f"{path} has shard format version {version!r}; this subslope reads version "
-                f"{FORMAT_VERSION}"
+                f"{FORMAT_VERSION} (version 2 added per-chunk checksums); {_recovery(path)}"
             )
         if not bool(handle.attrs.get("complete", False)):
             raise ShardError(
@@ -332,7 +411,7 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
                 )
         # Touch the last image: a truncated file fails here rather than mid-training.
         if n:
-            handle["images"][n - 1]
+            CheckedRows(path, handle["images"])[n - 1]
     except ShardError:
         handle.close()
         raise
@@ -340,3 +419,22 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
         handle.close()
         raise ShardError(f"{path} is corrupt: {exc}") from None
     return Shard(path, handle)
+
+
+def verify_shard(path: str | os.PathLike[str]) -> int:
+    """Read every dataset of a shard whole (every chunk's checksum checked by HDF5) and
+    return the number of images; a bad chunk raises :class:`ShardError` naming the
+    dataset and the image or row."""
+    with open_shard(path) as shard:
+        datasets: list[h5py.Dataset] = []
+        shard.file.visititems(
+            lambda _, obj: datasets.append(obj) if isinstance(obj, h5py.Dataset) else None
+        )
+        for dataset in datasets:
+            rows = CheckedRows(shard.path, dataset)
+            if not dataset.shape:  # a scalar
+                rows[()]
+                continue
+            for lo in range(0, len(rows), 256):
+                rows[lo : lo + 256]
+        return len(shard)

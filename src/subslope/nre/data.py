@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from subslope.io.shards import CheckedRows, open_hdf5
 from subslope.physics.instrument import PIXEL_SCALE
 from subslope.ragged import counts_to_offsets
 
@@ -80,7 +81,7 @@ def shard_lengths(paths: Sequence, *, require_label: bool = True) -> list[int]:
     """Number of images in each shard (checks the layout and the ``complete`` flag)."""
     out = []
     for p in paths:
-        with h5py.File(p, "r") as fh:
+        with open_hdf5(p) as fh:
             out.append(_check_shard(p, fh, require_label=require_label))
     return out
 
@@ -89,9 +90,9 @@ def read_labels(paths: Sequence, key: str = "gamma_sub") -> np.ndarray:
     """All values of ``params/<key>`` of the shards, concatenated (float64)."""
     vals = []
     for p in paths:
-        with h5py.File(p, "r") as fh:
+        with open_hdf5(p) as fh:
             _check_shard(p, fh)
-            vals.append(np.asarray(fh[f"params/{key}"][...], dtype=np.float64))
+            vals.append(np.asarray(CheckedRows(p, fh[f"params/{key}"])[...], dtype=np.float64))
     return np.concatenate(vals) if vals else np.zeros(0)
 
 
@@ -214,7 +215,7 @@ class ShardBatches(Dataset):
             self._files, self._pid = {}, os.getpid()
         fh = self._files.get(s)
         if fh is None:
-            fh = self._files[s] = h5py.File(self.paths[s], "r")
+            fh = self._files[s] = open_hdf5(self.paths[s])
         return fh
 
     def __getstate__(self):
@@ -238,13 +239,14 @@ class ShardBatches(Dataset):
             s = int(self._block_shard[bk])
             lo, hi = int(rows[sel].min()), int(rows[sel].max()) + 1
             fh = self._file(s)
-            chunk = fh["images"][lo:hi]
+            chunk = CheckedRows(self.paths[s], fh["images"])[lo:hi]
             if images is None:
                 images = np.empty((n, *chunk.shape[1:]), dtype=np.float32)
             images[sel] = chunk[rows[sel] - lo]
             for k in PARAM_KEYS:
                 if f"params/{k}" in fh:
-                    params[k][sel] = fh[f"params/{k}"][lo:hi][rows[sel] - lo]
+                    rows_k = CheckedRows(self.paths[s], fh[f"params/{k}"])[lo:hi]
+                    params[k][sel] = rows_k[rows[sel] - lo]
                 else:  # unlabelled shard (require_label=False)
                     params[k][sel] = np.nan
         x = torch.from_numpy(images)

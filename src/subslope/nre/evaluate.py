@@ -67,7 +67,7 @@ def log_ratio_profiles(
         np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy()
         for v in (theta_e, lens_x, lens_y)
     )
-    dev = pick_device(device)
+    dev = pick_device(device, key="inference.device")
     model = model.to(dev).eval()
     dtype = next(model.parameters()).dtype
     grid_t = torch.as_tensor(g, dtype=dtype, device=dev)

@@ -19,7 +19,6 @@ The whitening statistics are computed by :mod:`subslope.nre.whitening` (workflow
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -27,6 +26,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
+from subslope.io.atomic import read_json
 from subslope.physics.instrument import PIXEL_SCALE
 
 __all__ = ["preprocess", "read_whitening", "Whitening"]
@@ -45,8 +45,7 @@ def read_whitening(source) -> Whitening:
     where = "whitening"
     if isinstance(source, (str, os.PathLike)):
         where = f"whitening file {os.fspath(source)!r}"
-        with open(source) as fh:
-            source = json.load(fh)
+        source = read_json(source)
     if isinstance(source, Mapping):
         missing = [k for k in ("mean", "std") if k not in source]
         if missing:

@@ -50,13 +50,22 @@ from tqdm.auto import tqdm
 from subslope.devices import pick_device
 from subslope.io.atomic import atomic_write
 
+from .checkpoints import CheckpointError, atomic_save, rng_state, set_rng_state, torch_load
 from .data import ShardBatches, make_loader, read_labels
 from .loss import NRELoss
 from .models import RatioEstimator, build_model, model_card
 from .preprocess import read_whitening
 from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
 
-__all__ = ["resolve_config", "config_hash", "train", "load_estimator", "evaluate"]
+__all__ = [
+    "CheckpointError",
+    "resolve_config",
+    "config_hash",
+    "train",
+    "load_estimator",
+    "evaluate",
+]
+
 
 log = logging.getLogger(__name__)
 
@@ -69,41 +78,6 @@ def _amp_dtype(cfg, device: torch.device) -> torch.dtype | None:
     if cfg["amp"] == "bf16" or (cfg["amp"] == "auto" and torch.cuda.is_bf16_supported()):
         return torch.bfloat16
     return torch.float16
-
-
-# -- RNG state (stored as plain types so torch.load(weights_only=True) can read it) ----
-def _rng_state() -> dict[str, Any]:
-    name, keys, pos, has_gauss, cached = np.random.get_state()
-    py = random.getstate()
-    state = {
-        "torch": torch.get_rng_state(),
-        "numpy": [
-            name,
-            torch.from_numpy(keys.astype(np.int64)),
-            int(pos),
-            int(has_gauss),
-            float(cached),
-        ],
-        "python": [py[0], list(py[1]), py[2]],
-    }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def _set_rng_state(state: Mapping[str, Any]) -> None:
-    torch.set_rng_state(state["torch"])
-    name, keys, pos, has_gauss, cached = state["numpy"]
-    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
-    py = state["python"]
-    random.setstate((py[0], tuple(py[1]), py[2]))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def _atomic_save(obj, path: Path) -> None:
-    with atomic_write(path) as tmp:
-        torch.save(obj, tmp)
 
 
 def _write_log(history: Sequence[Mapping[str, Any]], path: Path) -> None:
@@ -176,7 +150,7 @@ def train(
     """
     cfg = resolve_config(config)
     chash = config_hash(cfg)
-    device = pick_device(device)
+    device = pick_device(device, key="training.device")
     whitening = read_whitening(whitening)
     out_dir, ckpt_dir = Path(out_dir), Path(ckpt_dir)
     ckpt_dir.mkdir(parents=True, exist_ok=True)
@@ -243,7 +217,7 @@ class _Run:
     )
 
     def checkpoint(self) -> None:
-        _atomic_save(
+        atomic_save(
             {
                 "config": self.cfg,
                 "config_hash": self.chash,
@@ -251,7 +225,7 @@ class _Run:
                 "optimizer": self.opt.state_dict(),
                 "scheduler": self.sched.state_dict(),
                 "scaler": self.scaler.state_dict() if self.scaler is not None else None,
-                "rng": _rng_state(),
+                "rng": rng_state(),
                 "state": self.state,
             },
             self.last_path,
@@ -307,7 +281,12 @@ def _resume(run: _Run, ckpt_dir) -> None:
     random states and the loop position."""
     if not run.last_path.exists():
         return
-    ck = torch.load(run.last_path, map_location=run.device, weights_only=True)
+    ck = torch_load(
+        run.last_path,
+        run.device,
+        f"delete {ckpt_dir} to train afresh (a checkpoint written whole is never replaced by "
+        "a partial one: this file was changed after it was written)",
+    )
     cfg = run.cfg
     if ck["config_hash"] != run.chash:
         changed = sorted(
@@ -322,7 +301,7 @@ def _resume(run: _Run, ckpt_dir) -> None:
     run.sched.load_state_dict(ck["scheduler"])
     if run.scaler is not None and ck.get("scaler"):
         run.scaler.load_state_dict(ck["scaler"])
-    _set_rng_state(ck["rng"])
+    set_rng_state(ck["rng"])
     run.state.update(ck["state"])
     if run.state["finished"]:
         run.state["stop_reason"] = run.state.get("stop_reason") or "finished"
@@ -448,14 +427,14 @@ def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
     )
     if val < state["best_val"] - cfg["min_delta"]:
         state["best_val"], state["bad_epochs"] = val, 0
-        _atomic_save(
+        atomic_save(
             {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path
         )
     else:
         state["bad_epochs"] += 1
         if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
             state["best_val"] = val
-            _atomic_save(
+            atomic_save(
                 {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path
             )
     state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
@@ -470,10 +449,10 @@ def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
 def _write_model(run: _Run, whitening, out_dir: Path) -> Path:
     """``model.pt``: the best weights with everything needed to use them."""
     cfg = run.cfg
-    best = torch.load(run.best_path, map_location="cpu", weights_only=True)
+    best = torch_load(run.best_path, "cpu", f"delete {run.best_path.parent} to train afresh")
     run.model.load_state_dict(best["model"])
     model_path = out_dir / "model.pt"
-    _atomic_save(
+    atomic_save(
         {
             "format": "subslope.nre/1",
             "model": {k: v.cpu() for k, v in run.model.state_dict().items()},
@@ -570,7 +549,12 @@ def load_estimator(path, *, map_location="cpu") -> tuple[RatioEstimator, dict[st
     ``whitening`` ({mean, std}), ``gamma_norm``, ``preprocess`` ({pixel_scale,
     mask_factor}), ``config``, ``config_hash``, ``history``, ``best_epoch``, ...
     """
-    payload = torch.load(path, map_location=map_location, weights_only=True)
+    payload = torch_load(
+        path,
+        map_location,
+        "delete it and run snakemake again to write it anew (training resumes from its "
+        "checkpoints)",
+    )
     if payload.get("format") != "subslope.nre/1":
         raise ValueError(
             f"{os.fspath(path)!r} is not a subslope estimator file (format "

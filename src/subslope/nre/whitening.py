@@ -16,7 +16,6 @@ two-pass accuracy of each chunk is kept. ``std`` is the population standard devi
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from subslope.io.atomic import write_json
+from subslope.io.atomic import read_json, write_json
 from subslope.io.shards import file_sha256, open_shard
 
 __all__ = ["Moments", "pixel_statistics", "compute_whitening", "load_whitening"]
@@ -124,7 +123,7 @@ def compute_whitening(
 
 def load_whitening(path: str | os.PathLike[str]) -> tuple[float, float]:
     """``(mean, std)`` from a whitening JSON file."""
-    d = json.loads(Path(path).read_text())
+    d = read_json(path)
     if d.get("format") != WHITENING_FORMAT:
         raise ValueError(f"{path} is not a whitening file (format {d.get('format')!r})")
     return float(d["mean"]), float(d["std"])

@@ -4,7 +4,6 @@ that the later stages use."""
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import warnings
@@ -15,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from subslope.figures.save import save_figure
-from subslope.io.atomic import atomic_write, write_json, write_text
+from subslope.io.atomic import atomic_write, read_json, write_json, write_text
 from subslope.io.ratio_profiles import read_profiles
 from subslope.stages.plan import derived_seed
 from subslope.stats import calibration, intervals
@@ -243,8 +242,7 @@ def summarize_coverage(
 
 def load_thresholds(path) -> dict[str, Any]:
     """``thresholds.json`` of :func:`summarize_coverage` with integer N keys."""
-    with open(path, encoding="utf-8") as fh:
-        thr = json.load(fh)
+    thr = read_json(path)
     thr["tau"] = {int(k): float(v) for k, v in thr["tau"].items()}
     thr["exact"] = {int(k): bool(v) for k, v in thr.get("exact", {}).items()}
     return thr

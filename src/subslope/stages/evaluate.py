@@ -6,12 +6,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import h5py
-
 from subslope.io.ratio_profiles import write_profiles
+from subslope.io.shards import open_shard
 from subslope.nre.evaluate import estimator_profiles
 
-__all__ = ["evaluate_shard"]
+__all__ = ["PROFILE_PARAMS", "evaluate_shard"]
+
+#: Per-image parameters of a shard kept beside its profiles (None where the shard has none).
+PROFILE_PARAMS = ("theta_e", "lens_x", "lens_y", "gamma_sub", "set_index", "c_multiplier")
 
 
 def evaluate_shard(
@@ -29,15 +31,13 @@ def evaluate_shard(
     from subslope.nre.train import load_estimator
 
     model, meta = load_estimator(model_path)
-    with h5py.File(shard_path, "r") as fh:
-        params = {k: fh[f"params/{k}"][...] for k in ("theta_e", "lens_x", "lens_y")}
-        for k in ("gamma_sub", "set_index", "c_multiplier"):
-            params[k] = fh[f"params/{k}"][...] if f"params/{k}" in fh else None
-        scene = fh.attrs.get("scene", "")
+    with open_shard(shard_path) as shard:
+        params = {k: shard.params.get(k) for k in PROFILE_PARAMS}
+        scene = shard.attrs.get("scene", "")
         profiles = estimator_profiles(
             model,
             meta,
-            fh["images"],
+            shard.images,
             params["theta_e"],
             params["lens_x"],
             params["lens_y"],

@@ -19,6 +19,7 @@ __all__ = [
     "RUN_ONLY_RENDER_KEYS",
     "derived_seed",
     "plan_problems",
+    "slurm_gpu_problems",
     "multiplier_label",
     "shard_job_config",
     "shard_jobs",
@@ -119,7 +120,8 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
     """Problems of a schema-valid ``config`` that only its scenes, data registry and data
     catalogue show, each naming the key and what is allowed: every scene must build
     (:class:`subslope.simulation.scenes.Scene`), the COSMOS split fractions must sum to 1,
-    every COSMOS folder must be a registered data folder or exist, and the HST systems
+    every COSMOS folder and the empirical PSF file must be registered data or exist, and
+    the HST systems
     named in ``hst`` must be in the catalogue (when the catalogue is at hand). Called by
     the workflow when it loads and by ``subslope validate-config``."""
     from subslope.simulation.scenes import SceneError, scenes_from_config
@@ -142,8 +144,28 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
             f"(they sum to {total:g})"
         )
     problems += _cosmos_folder_problems(config)
+    problems += _psf_problems(config)
     problems += _hst_name_problems(config)
     return problems
+
+
+def _psf_problems(config: Mapping[str, Any]) -> list[str]:
+    from pathlib import Path
+
+    from subslope.io.resources import load_registry
+
+    psf = config["instrument"]["psf"]
+    if psf["source"] != "empirical":
+        return []
+    registered = {e.path for e in load_registry()}
+    root = Path(config["data"]["resources_dir"])
+    if psf["file"] in registered or (root / psf["file"]).is_file():
+        return []
+    return [
+        f"config key instrument.psf.file = {psf['file']!r}: neither a registered data file "
+        f"({', '.join(sorted(r for r in registered if r.startswith('psf/')))}) nor a file "
+        f"under data.resources_dir = {root}"
+    ]
 
 
 def _cosmos_folder_problems(config: Mapping[str, Any]) -> list[str]:
@@ -187,3 +209,42 @@ def _hst_name_problems(config: Mapping[str, Any]) -> list[str]:
                 f"{catalog} lists {', '.join(known)}"
             )
     return out
+
+
+def slurm_gpu_problems(config: Mapping[str, Any], gres: str | None = None) -> list[str]:
+    """GPU requests (``training.gpus``, ``inference.gpus``) of the stages that run, on a
+    SLURM cluster whose nodes offer no GPU: SLURM refuses such a job only at submission
+    ("Invalid generic resource (gres) specification"), after the jobs before it ran.
+
+    ``gres`` is the output of ``sinfo -h -o %G`` (the generic resources of every node);
+    by default ``sinfo`` is asked, and nothing is reported where it cannot be run.
+    """
+    import subprocess
+
+    config = _config.validate(config)
+    stages = _config.active_stages(config)
+    asks = [
+        (key, config[section]["gpus"])
+        for key, section, stage in (
+            ("training.gpus", "training", "train"),
+            ("inference.gpus", "inference", "evaluate"),
+        )
+        if stages[stage] and config[section]["gpus"] > 0
+    ]
+    if not asks:
+        return []
+    if gres is None:
+        try:
+            gres = subprocess.run(
+                ["sinfo", "-h", "-o", "%G"], capture_output=True, text=True, timeout=30
+            ).stdout
+        except (OSError, subprocess.SubprocessError):
+            return []
+    if "gpu" in gres:
+        return []
+    return [
+        f"config key {key} = {n}: the SLURM cluster offers no GPU (sinfo shows generic "
+        f"resources {gres.split() or ['(none)']}); set {key}: 0 and "
+        f"{key.replace('gpus', 'device')}: cpu, or submit where GPU nodes are"
+        for key, n in asks
+    ]

@@ -41,4 +41,8 @@ def simulate_shard_job(
     config["data"] = copy.deepcopy(run["data"])
     render = run["simulation"]["render"]
     config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
-    return simulate_shard(config, scene, shard, out_path, multiplier=multiplier, progress=False)
+    # The workflow keeps the previous shard in place while its job runs (Snakemake's
+    # update(): put back if the job fails); the new one replaces it atomically.
+    return simulate_shard(
+        config, scene, shard, out_path, multiplier=multiplier, progress=False, overwrite=True
+    )

@@ -59,8 +59,9 @@ def checkpoint_key(
 def data_fingerprint(train_shards: Sequence, val_shards: Sequence, whitening) -> str:
     """12 hex digits of the SHA-256 of every training and validation shard's bytes and of
     the whitening JSON. Refuses a whitening file whose recorded shard checksums are not
-    those of ``train_shards`` now (it was computed from other images)."""
-    from subslope.io.shards import file_sha256
+    those of ``train_shards`` now (it was computed from other images); a shard that
+    changed because it is corrupt is named as such (:func:`subslope.io.shards.verify_shard`)."""
+    from subslope.io.shards import file_sha256, verify_shard
 
     sums = {os.fspath(p): file_sha256(p) for p in [*train_shards, *val_shards]}
     if isinstance(whitening, (str, os.PathLike)):
@@ -70,6 +71,8 @@ def data_fingerprint(train_shards: Sequence, val_shards: Sequence, whitening) ->
             for r in recorded
             if r.get("path") in sums and r.get("sha256") not in (None, sums[r["path"]])
         ]
+        for path in stale:  # a corrupt shard is named as such, not as a stale whitening
+            verify_shard(path)
         if stale:
             raise ValueError(
                 f"whitening file {os.fspath(whitening)} was computed from other contents of "
