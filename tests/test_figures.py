@@ -52,9 +52,16 @@ def test_validation_and_stack_scatter(scatter_data, tmp_path):
     )
     (ax,) = fig.axes
     inside = ((gt > 1.2) & (gt < 2.8)).sum()
-    assert len(ax.containers) == 2  # closed intervals, intervals open at a prior edge
-    n_points = sum(len(c[0].get_xdata()) for c in ax.containers)  # c[0]: the markers of an errorbar
-    assert n_points == inside  # only 1.2 < γ < 2.8
+    from matplotlib.collections import PathCollection, PolyCollection
+
+    dots = [c for c in ax.collections if isinstance(c, PathCollection)]
+    bands = [c for c in ax.collections if isinstance(c, PolyCollection)]
+    assert sum(len(c.get_offsets()) for c in dots) == inside  # only 1.2 < γ < 2.8, faint
+    assert len(dots) == 2 and len(bands) == 3  # closed/open points; γ_MLE, lower, upper bands
+    median = next(line for line in ax.get_lines() if line.get_linewidth() == 2)
+    x, y = median.get_data()
+    ok = np.isfinite(y)
+    assert ok.sum() >= 8 and np.all(np.abs(y[ok] - x[ok]) < 0.15)  # unbiased toy estimates
     assert ax.get_legend() is not None and "1:1" in [
         t.get_text() for t in ax.get_legend().get_texts()
     ]
@@ -64,6 +71,20 @@ def test_validation_and_stack_scatter(scatter_data, tmp_path):
     _check_saved(fig3, tmp_path, "fig3_stacks")
     with pytest.raises(ValueError, match="mle"):
         figures.validation_scatter(gt, m[:5], lo, hi, run_name=RUN)
+
+
+def test_binned_quantiles():
+    from subslope.figures.recovery import binned_quantiles
+
+    x = np.linspace(0.0, 1.0, 1001)
+    centres, q, counts = binned_quantiles(x, 2 * x, [0.0, 0.5, 1.0])
+    assert np.allclose(centres, [0.25, 0.75]) and counts.tolist() == [500, 501]
+    assert np.allclose(q[:, 1], [0.499, 1.5], atol=2e-3)  # median of 2x over each half
+    assert np.allclose(q[:, 0], 2 * np.array([0.08, 0.58]), atol=3e-3)
+    _, q, counts = binned_quantiles([0.1, 0.2], [1.0, 2.0], [0.0, 0.5, 1.0])
+    assert counts.tolist() == [2, 0] and np.isnan(q).all()  # fewer than 3 points: no band
+    with pytest.raises(ValueError, match="increasing"):
+        binned_quantiles(x, x, [1.0, 0.0])
 
 
 def test_concentration_grid(rng, tmp_path):

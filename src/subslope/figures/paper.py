@@ -9,8 +9,8 @@ string (e.g. the estimator file or config hash). docs/inference.md says how to r
 
 | function | paper | shows |
 |---|---|---|
-| :func:`validation_scatter` | Fig. 2 | single-image γ_MLE ± 68% vs true γ |
-| :func:`stack_scatter` | Fig. 3 | 13-image EPL stacks, γ_MLE ± 68% vs shared γ |
+| :func:`validation_scatter` | Fig. 2 | single images: binned γ_MLE and 68% bounds vs true γ |
+| :func:`stack_scatter` | Fig. 3 | 13-image EPL stacks, the same against their shared γ |
 | :func:`concentration_grid` | Fig. 4 | stack MLEs (median, 16–84%) vs concentration multiplier a |
 | :func:`hst_profiles` | Fig. 5 | t(γ) of individual HST systems with the single-image threshold |
 | :func:`hst_combined` | Fig. 6 | combined HST t(γ), its 68% interval, the a = 1 NFW/tNFW bands |
@@ -26,6 +26,7 @@ from matplotlib import colormaps
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 
+from subslope.figures.recovery import stack_scatter, validation_scatter
 from subslope.figures.save import footer
 from subslope.stats.intervals import Interval, test_statistic
 
@@ -52,184 +53,6 @@ def _finish(fig: Figure, title: str | None = None) -> Figure:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.035, 1, 0.95 if title else 1))
     return fig
-
-
-def _arrays(*arrays, names):
-    out = [np.asarray(a, dtype=np.float64).ravel() for a in arrays]
-    n = out[0].size
-    for a, name in zip(out, names, strict=True):
-        if a.size != n:
-            raise ValueError(f"{name} must have {n} values like {names[0]}, got {a.size}")
-    if n == 0:
-        raise ValueError(f"{names[0]} is empty: nothing to plot")
-    return out
-
-
-def _interval_scatter(ax, gamma_true, mle, lo, hi, open_lower, open_upper, prior, color, label):
-    """γ_MLE with asymmetric 68% error bars vs true γ, with 1:1 line; returns the coverage."""
-    n = gamma_true.size
-    open_any = np.zeros(n, bool)
-    if open_lower is not None:
-        open_any |= np.asarray(open_lower, bool).ravel()
-    if open_upper is not None:
-        open_any |= np.asarray(open_upper, bool).ravel()
-    yerr = np.vstack([np.maximum(mle - lo, 0), np.maximum(hi - mle, 0)])
-    ax.plot(prior, prior, color="0.4", lw=1, ls="--", zorder=1, label="1:1")
-    closed = ~open_any
-    ax.errorbar(
-        gamma_true[closed],
-        mle[closed],
-        yerr=yerr[:, closed],
-        fmt="o",
-        ms=3.5,
-        color=color,
-        ecolor=color,
-        elinewidth=0.8,
-        capsize=1.5,
-        alpha=0.85,
-        label=label,
-        zorder=3,
-    )
-    if open_any.any():
-        ax.errorbar(
-            gamma_true[open_any],
-            mle[open_any],
-            yerr=yerr[:, open_any],
-            fmt="o",
-            ms=3.5,
-            mfc="white",
-            color="0.45",
-            ecolor="0.6",
-            elinewidth=0.8,
-            capsize=1.5,
-            zorder=2,
-            label="interval open at a prior edge",
-        )
-    pad = 0.02 * (prior[1] - prior[0])
-    ax.set_xlim(prior[0] - pad, prior[1] + pad)
-    ax.set_ylim(prior[0] - pad, prior[1] + pad)
-    ax.set_aspect("equal")
-    ax.set_xlabel(r"true $\gamma$")
-    ax.set_ylabel(r"$\gamma_\mathrm{MLE}$ (68% interval)")
-    ax.grid(alpha=0.25)
-    covered = float(np.mean((lo <= gamma_true) & (gamma_true <= hi)))
-    ax.legend(loc="upper left", fontsize=7, frameon=False)
-    return covered
-
-
-def _scatter_figure(
-    gamma_true,
-    mle,
-    lo,
-    hi,
-    *,
-    run_name,
-    source,
-    gamma_range,
-    open_lower,
-    open_upper,
-    prior,
-    threshold,
-    title,
-    color,
-    unit,
-):
-    gamma_true, mle, lo, hi = _arrays(
-        gamma_true, mle, lo, hi, names=("gamma_true", "mle", "lo", "hi")
-    )
-    keep = np.ones(gamma_true.size, bool)
-    if gamma_range is not None:
-        keep = (gamma_true > gamma_range[0]) & (gamma_true < gamma_range[1])
-        if not keep.any():
-            raise ValueError(f"no point with {gamma_range[0]} < gamma_true < {gamma_range[1]}")
-    sel = [a[keep] for a in (gamma_true, mle, lo, hi)]
-    ol = None if open_lower is None else np.asarray(open_lower, bool).ravel()[keep]
-    ou = None if open_upper is None else np.asarray(open_upper, bool).ravel()[keep]
-    fig = Figure(figsize=(4.6, 4.9))
-    ax = fig.subplots()
-    cov = _interval_scatter(ax, *sel, ol, ou, prior, color, f"{keep.sum()} {unit}")
-    txt = f"{cov:.0%} of intervals contain the true $\\gamma$"
-    if threshold is not None:
-        txt += f"\nthreshold $\\tau$ = {threshold:.3g}"
-    ax.text(0.97, 0.03, txt, transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
-    extra = None if gamma_range is None else f"{gamma_range[0]} < true γ < {gamma_range[1]}"
-    footer(fig, run_name, source, extra)
-    return _finish(fig, title)
-
-
-# ---------------------------------------------------------------------------------------
-# Fig. 2 and 3
-# ---------------------------------------------------------------------------------------
-def validation_scatter(
-    gamma_true,
-    mle,
-    lo,
-    hi,
-    *,
-    run_name: str,
-    source: str | None = None,
-    gamma_range: tuple[float, float] | None = (1.2, 2.8),
-    open_lower=None,
-    open_upper=None,
-    prior: tuple[float, float] = (1.1, 2.9),
-    threshold: float | None = None,
-) -> Figure:
-    """Fig. 2: single-image γ_MLE with its 68% interval ``[lo, hi]`` against the true γ.
-
-    Only images with ``gamma_range[0] < γ_true < gamma_range[1]`` are drawn (``None``:
-    all). Intervals flagged ``open_lower``/``open_upper`` (reaching a prior edge) are drawn
-    hollow and grey. The corner text gives the fraction of intervals containing γ_true.
-    """
-    return _scatter_figure(
-        gamma_true,
-        mle,
-        lo,
-        hi,
-        run_name=run_name,
-        source=source,
-        gamma_range=gamma_range,
-        open_lower=open_lower,
-        open_upper=open_upper,
-        prior=prior,
-        threshold=threshold,
-        title="Single images: maximum-likelihood slope vs truth",
-        color="#444444",
-        unit="images",
-    )
-
-
-def stack_scatter(
-    gamma_true,
-    mle,
-    lo,
-    hi,
-    *,
-    run_name: str,
-    n_images: int = 13,
-    source: str | None = None,
-    gamma_range: tuple[float, float] | None = None,
-    open_lower=None,
-    open_upper=None,
-    prior: tuple[float, float] = (1.1, 2.9),
-    threshold: float | None = None,
-) -> Figure:
-    """Fig. 3: γ_MLE ± 68% of stacks of ``n_images`` EPL images against their shared true γ."""
-    return _scatter_figure(
-        gamma_true,
-        mle,
-        lo,
-        hi,
-        run_name=run_name,
-        source=source,
-        gamma_range=gamma_range,
-        open_lower=open_lower,
-        open_upper=open_upper,
-        prior=prior,
-        threshold=threshold,
-        title=f"Stacks of {n_images} EPL images: maximum-likelihood slope vs truth",
-        color=C_HST,
-        unit=f"stacks of {n_images}",
-    )
 
 
 # ---------------------------------------------------------------------------------------
