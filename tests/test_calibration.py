@@ -63,6 +63,22 @@ def test_threshold_order_statistic_small_sample_and_warning():
         threshold([1.0, np.nan] * 30)
 
 
+def test_independent_stacks_are_the_first_images_of_distinct_sets():
+    gamma = np.repeat([1.5, 2.0, 2.5], 4)
+    set_index = np.repeat([7, 3, 9], 4)
+    order = np.array([3, 0, 2, 1, 7, 4, 6, 5, 11, 8, 10, 9])  # rows not in set order
+    st = make_stacks(gamma[order], set_index[order], 2, mode="independent")
+    assert len(st) == 3 and sorted(st.set_id.tolist()) == [3, 7, 9]
+    for rows, sid in zip(st.indices, st.set_id, strict=True):
+        members = np.flatnonzero(set_index[order] == sid)
+        assert rows.tolist() == members[:2].tolist()  # the set's first two rows
+    assert len(np.unique(st.indices)) == st.indices.size  # no image in two stacks
+    with pytest.raises(ValueError, match="mode must be one of"):
+        make_stacks(gamma, set_index, 2, mode="random")
+    with pytest.raises(ValueError, match="n_stacks applies to mode='disjoint' only"):
+        make_stacks(gamma, set_index, 2, n_stacks=5, mode="independent")
+
+
 def test_make_stacks_distinct_images_within_one_set(rng):
     n_sets, size = 40, 13
     gamma = np.repeat(rng.uniform(1.1, 2.9, n_sets), size)

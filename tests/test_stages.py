@@ -102,12 +102,16 @@ def test_calibrate_per_n_gaussian_toy(tmp_path):
         assert abs(out["coverage"] - 0.68) < 3 * out["coverage_err"] + 0.02, (n, out["coverage"])
         assert np.nanmax(np.abs(out["coverage_curve"] - out["levels"])) < 0.15
         npzs.append(tmp_path / f"N{n}.npz")
-    assert np.load(tmp_path / "N13.npz")["t_true"].size == 300  # one disjoint stack of 13 per set
-    assert np.load(tmp_path / "N2.npz")["t_true"].size == 300 * 6
+    assert np.load(tmp_path / "N13.npz")["t_true"].size == 300  # one stack per set
+    assert np.load(tmp_path / "N2.npz")["t_true"].size == 300  # independent: one per set too
+    disjoint = calibrate_stack_size([sets], 2, tmp_path / "D2.npz", seed=3, stacks="disjoint")
+    assert disjoint["t_true"].size == 300 * 6  # six disjoint pairs per set of 13
     table, thr = summarize_coverage(
         npzs, tmp_path / "cal.csv", tmp_path / "thr.json", tmp_path / "coverage", run_name="toy"
     )
     assert table["n_images"].tolist() == [1, 2, 13]
+    flagged = table["coverage"] < table["level"] - 2 * table["coverage_err"]
+    assert table["overconfident"].tolist() == flagged.tolist()  # more than 2σ below the level
     assert (tmp_path / "coverage.png").stat().st_size > 10_000 and (
         tmp_path / "coverage.pdf"
     ).exists()
@@ -285,12 +289,12 @@ def test_summary_sections(tmp_path):
                 "n_stacks": 100,
                 "tau": 1.0,
                 "tau_exact": True,
-                "coverage": 0.7,
+                "coverage": cov,
                 "coverage_err": 0.05,
                 "coverage_wilks": 0.6,
                 "n_heldout": 50,
             }
-            for n in (1, 13)
+            for n, cov in ((1, 0.7), (13, 0.55))  # N = 13: 2.6σ below 0.68
         ]
     ).to_csv(tmp_path / "cal.csv", index=False)
     bench = tmp_path / "b.tsv"
@@ -310,6 +314,7 @@ def test_summary_sections(tmp_path):
     for section in SUMMARY_SECTIONS:
         assert f"## {section}" in text, section
     assert "abc123" in text and "2.510 (−0.040, +0.050)" in text and "ρ = 0.800" in text
+    assert "**Over-confident at N = 13**: held-out coverage more than 2σ below" in text
     folder = out.parent
     res = pd.read_csv(folder / "hst_result.csv")
     assert res["gamma_mle"].iloc[0] == 2.51 and res["threshold_n"].iloc[0] == 13

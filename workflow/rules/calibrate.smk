@@ -21,6 +21,7 @@ rule calibrate_threshold:
         level=CAL["level"],
         seed=derived_seed("calibration"),
         heldout_fraction=CAL["heldout_fraction"],
+        stacks=CAL["stacks"],
     script:
         "../scripts/calibrate_threshold.py"
 

@@ -15,6 +15,7 @@ try:
         level=snakemake.params.level,
         seed=snakemake.params.seed,
         heldout_fraction=snakemake.params.heldout_fraction,
+        stacks=snakemake.params.stacks,
     )
     if not out["tau_exact"]:
         logging.warning(

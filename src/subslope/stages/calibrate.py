@@ -92,12 +92,15 @@ def calibrate_stack_size(
     seed: int = 0,
     heldout_fraction: float = 0.5,
     levels=None,
+    stacks: str = "independent",
 ) -> dict[str, Any]:
     """Threshold τ_N and held-out coverage for stacks of ``n`` images; writes ``out_npz``.
 
-    Stacks: :func:`subslope.stats.calibration.make_stacks` (disjoint N-subsets of every set of
-    images sharing γ, seeded). Split by set (:func:`subslope.stats.calibration.split`):
-    ``heldout_fraction`` of the sets are held out. ``tau`` uses all stacks (the threshold
+    Stacks: :func:`subslope.stats.calibration.make_stacks` with ``mode=stacks``
+    (``independent``: the first N images of every set, one stack per set;
+    ``disjoint``: seeded disjoint N-subsets of every set of images sharing γ). Split by
+    set (:func:`subslope.stats.calibration.split`): ``heldout_fraction`` of the sets are
+    held out. ``tau`` uses all stacks (the threshold
     for new data), ``tau_calibration`` the calibration part only, whose held-out coverage
     is reported (with Wilks' χ²₁ threshold for comparison) along with expected-coverage
     curves over ``levels`` (default 0.01…0.99).
@@ -114,17 +117,17 @@ def calibrate_stack_size(
             f"calibration needs labelled images; {int((~ok).sum())} have no gamma_true"
         )
     rng = np.random.default_rng(derived_seed(seed, f"stacks/N{int(n)}"))
-    stacks = calibration.make_stacks(data["gamma_true"], data["set_id"], int(n), rng)
-    t_true = calibration.stack_t_true(data["log_ratio"], data["gammas"], stacks)
+    cut = calibration.make_stacks(data["gamma_true"], data["set_id"], int(n), rng, mode=stacks)
+    t_true = calibration.stack_t_true(data["log_ratio"], data["gammas"], cut)
     lv = np.linspace(0.01, 0.99, 99) if levels is None else np.asarray(levels, dtype=np.float64)
     tau, exact = safe_threshold(t_true, level)
     tau_w = calibration.wilks_threshold(level)
     try:
         is_cal = calibration.split(
-            stacks.set_id, seed=derived_seed(seed, "split"), fraction=1.0 - heldout_fraction
+            cut.set_id, seed=derived_seed(seed, "split"), fraction=1.0 - heldout_fraction
         )
     except ValueError:  # a single set: nothing to hold out
-        is_cal = np.ones(len(stacks), dtype=bool)
+        is_cal = np.ones(len(cut), dtype=bool)
     t_cal, t_held = t_true[is_cal], t_true[~is_cal]
     tau_cal, _ = safe_threshold(t_cal, level)
     cov, curve, curve_w = _heldout_coverage(t_cal, t_held, tau_cal, tau_w, lv)
@@ -136,10 +139,10 @@ def calibrate_stack_size(
         tau_calibration=tau_cal,
         tau_wilks=tau_w,
         t_true=t_true,
-        gamma=stacks.gamma,
-        set_id=stacks.set_id,
+        gamma=cut.gamma,
+        set_id=cut.set_id,
         is_calibration=is_cal,
-        indices=stacks.indices,
+        indices=cut.indices,
         levels=lv,
         coverage_curve=curve,
         coverage_curve_wilks=curve_w,
@@ -153,7 +156,7 @@ def calibrate_stack_size(
     log.info(
         "N=%d: %d stacks, tau=%.4g (exact %s), held-out coverage %.3f (Wilks %.3f)",
         n,
-        len(stacks),
+        len(cut),
         tau,
         exact,
         cov["coverage"],
@@ -178,6 +181,7 @@ COVERAGE_COLUMNS = (
     "coverage_wilks",
     "coverage_wilks_err",
     "level",
+    "overconfident",
 )
 
 
@@ -212,6 +216,10 @@ def summarize_coverage(
                     "coverage_wilks": float(z["coverage_wilks"]),
                     "coverage_wilks_err": float(z["coverage_wilks_err"]),
                     "level": float(z["level"]),
+                    # held-out coverage more than 2σ below the level
+                    "overconfident": bool(
+                        float(z["coverage"]) < float(z["level"]) - 2 * float(z["coverage_err"])
+                    ),
                 }
             )
             levels = z["levels"]

@@ -196,9 +196,19 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
         return ["Stage `calibrate` not run.\n"]
     table = pd.read_csv(calibration_csv)
     write_text(folder / "coverage.csv", table.to_csv(index=False))
+    if "overconfident" not in table:  # a table of an older run
+        level = table["level"] if "level" in table else 0.68
+        table["overconfident"] = table["coverage"] < level - 2 * table["coverage_err"]
+    flagged = [int(n) for n in table.loc[table["overconfident"].astype(bool), "n_images"]]
+    warning = (
+        f"**Over-confident at N = {', '.join(map(str, flagged))}**: held-out coverage more "
+        "than 2σ below the level.\n"
+        if flagged
+        else "No N has held-out coverage more than 2σ below the level.\n"
+    )
     return [
         "Held-out coverage of the 68% intervals with the calibrated threshold τ_N "
-        "(and with Wilks' χ²₁ threshold):\n",
+        "(and with Wilks' χ²₁ threshold); errors from the number of held-out stacks:\n",
         _md_table(
             table.to_dict("records"),
             [
@@ -210,8 +220,10 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
                 "coverage_err",
                 "coverage_wilks",
                 "n_heldout",
+                "overconfident",
             ],
         ),
+        warning,
     ]
 
 

@@ -34,6 +34,7 @@ __all__ = [
     "calibration_table",
     "coverage",
     "expected_coverage",
+    "STACK_MODES",
     "make_stacks",
     "split",
     "stack_t_true",
@@ -141,8 +142,34 @@ def _rng(rng):
     return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
-def make_stacks(gamma_true, set_index, n: int, rng=None, n_stacks: int | None = None) -> Stacks:
+#: How :func:`make_stacks` cuts the sets into stacks.
+STACK_MODES = ("independent", "disjoint")
+
+
+def _first_of_each_set(g, ids, members, eligible, n: int, n_stacks) -> Stacks:
+    """One stack per set: its first ``n`` rows (``mode="independent"`` of make_stacks)."""
+    if n_stacks is not None:
+        raise ValueError("n_stacks applies to mode='disjoint' only")
+    rows = np.asarray([np.sort(members[k])[:n] for k in eligible], dtype=np.int64)
+    return Stacks(indices=rows, gamma=g[rows[:, 0]], set_id=ids[np.asarray(eligible)])
+
+
+def make_stacks(
+    gamma_true,
+    set_index,
+    n: int,
+    rng=None,
+    n_stacks: int | None = None,
+    *,
+    mode: str = "disjoint",
+) -> Stacks:
     """Stacks of ``n`` distinct images of one set (all sharing the set's true γ).
+
+    ``mode="independent"``: one stack per set, its first ``n`` images in file order (no
+    ``rng`` needed). Stacks then share neither an image nor a γ draw, so every stack is
+    an independent trial and binomial coverage errors are honest; it needs as many sets
+    as stacks. ``mode="disjoint"`` (the default) cuts every set into several stacks, as
+    below: more stacks from few sets, but stacks of one set share their γ.
 
     ``gamma_true (M,)``, ``set_index (M,)``: per image, its true γ and the id of its set
     (the simulation writes sets of 13 images with a shared γ). Sets with fewer than ``n``
@@ -180,6 +207,10 @@ def make_stacks(gamma_true, set_index, n: int, rng=None, n_stacks: int | None = 
         raise ValueError(
             f"make_stacks: no set has >= n = {n} images (largest: {max(m.size for m in members)})"
         )
+    if mode not in STACK_MODES:
+        raise ValueError(f"mode must be one of {STACK_MODES}, got {mode!r}")
+    if mode == "independent":
+        return _first_of_each_set(g, ids, members, eligible, n, n_stacks)
     rows, sets = [], []
     for k in eligible:
         perm = gen.permutation(members[k])
