@@ -9,7 +9,7 @@
 #   train     train_estimator                   evaluate  profiles on the gamma grid
 #   calibrate thresholds per N, coverage        cdm_grid  concentration grid (figure 4)
 #   hst       the 13 real lenses (figures 5, 6) figures   training curves, figures 2, 3
-#   summary   results/summary.md
+#   null_tests scenes without subhalos          summary   results/summary.md
 #
 # Every output is flagged update(): Snakemake leaves the previous version in place while
 # its job runs (a copy waits in .snakemake/backups/) and puts it back if the job fails,
@@ -66,6 +66,7 @@ include: "workflow/rules/train.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/cdm_grid.smk"
+include: "workflow/rules/null_tests.smk"
 include: "workflow/rules/hst.smk"
 include: "workflow/rules/figures.smk"
 include: "workflow/rules/summary.smk"

@@ -32,6 +32,13 @@ SHIPPED_DEVIATIONS = {
     ("training", "batch_size"),
     ("training", "num_workers"),
     ("training", "checkpoint_every"),
+    ("null_tests", "scenes"),
+}
+
+#: The null-test scenes of config/config.yaml: the test sets without subhalos.
+NULL_SCENES = {
+    "null_nosub": {"subhalos": {"count": 0}, "components": {"los": False}},
+    "null_nosub_los": {"subhalos": {"count": 0}},
 }
 
 #: Scene keys without a schema default (their preset differs between scenes; see the
@@ -74,7 +81,10 @@ def test_shipped_config_is_valid_and_complete():
     # it equals the pure-defaults config; scenes compare as resolved Scene objects
     # (the file writes the train scene out in full, the defaults are the presets).
     chosen = {name: SHIPPED_SCENE_CHOICES for name in defaults["scenes"] or PRESETS}
+    test_sets = {"images_per_set": 13, "source": {"split": "test"}, **SHIPPED_SCENE_CHOICES}
+    chosen.update({name: {**test_sets, **spec} for name, spec in NULL_SCENES.items()})
     assert scenes_from_config(loaded["scenes"]) == scenes_from_config(chosen)
+    assert loaded["null_tests"]["scenes"] == list(NULL_SCENES)
     strip = SHIPPED_DEVIATIONS | {("scenes",)}
     assert _without(loaded, strip) == _without(defaults, strip)
     assert loaded["simulation"]["sources"]["cuts"]["mag_max"] is None

@@ -84,9 +84,11 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
         stats[parts[0]] = int(parts[1])
     cfg = _layered()
     n_mult = len(cfg["simulation"]["multipliers"])
-    assert stats["simulate_shard"] == 5000 + 1 + 10
+    n_null = sum(cfg["simulation"]["scenes"][s]["n_shards"] for s in cfg["null_tests"]["scenes"])
+    assert n_null == 2  # the null scenes of config.yaml, one shard each
+    assert stats["simulate_shard"] == 5000 + 1 + 10 + n_null
     assert stats["simulate_cdm_shard"] == stats["evaluate_cdm_profiles"] == 2 * n_mult * 10
-    assert stats["evaluate_profiles"] == 1 + 10
+    assert stats["evaluate_profiles"] == 1 + 10 + n_null
     assert stats["calibrate_threshold"] == 6
     for rule in (
         "train_estimator",

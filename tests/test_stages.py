@@ -135,6 +135,52 @@ def test_calibrate_per_n_gaussian_toy(tmp_path):
     assert over["coverage_wilks"] < 0.6
 
 
+def test_null_tests_tell_a_blind_estimator_from_one_that_reads_something(tmp_path):
+    """Flat profiles (nothing read from the image): γ_MLE over the whole prior, a flat mean
+    profile, no interval excludes part of the prior. Informative profiles (as the toy's
+    χ²₁ ones): a curved mean for one γ, and most intervals exclude part of the prior."""
+    import json
+
+    import pandas as pd
+
+    from subslope.stages.null_tests import null_tests
+
+    rng = np.random.default_rng(11)
+    grid = gamma_grid(1.1, 2.9, 181)
+    n_sets, per = 40, 13
+    gam = np.repeat(rng.uniform(1.1, 2.9, n_sets), per)
+    sets = np.repeat(np.arange(n_sets), per)
+
+    def profiles(name, log_ratio):
+        return write_profiles(
+            tmp_path / name, log_ratio=log_ratio, gammas=grid, gamma_true=gam, set_index=sets
+        )
+
+    blind = profiles("blind.h5", 1e-3 * rng.normal(size=(gam.size, grid.size)))  # flat
+    # a γ read from something else than the subhalos: always 2.0
+    seeing = profiles("seeing.h5", _toy_profiles(np.full(gam.size, 2.0), grid, rng))
+    thr = tmp_path / "thresholds.json"
+    taus = {"1": 1.0, "13": 1.0}
+    thr.write_text(json.dumps({"level": 0.68, "wilks": 0.989, "tau": taus, "exact": {}}))
+    table = null_tests(
+        {"blind": [blind], "seeing": [seeing]},
+        thr,
+        tmp_path / "null.csv",
+        tmp_path / "null",
+        run_name="toy",
+    ).set_index("scene")
+    assert (
+        table.loc["blind", "stack_excluding"] == 0 and table.loc["blind", "single_excluding"] == 0
+    )
+    assert table.loc["blind", "mean_profile_range"] < 0.01
+    assert table.loc["blind", "n_stacks"] == n_sets and table.loc["blind", "n_per_stack"] == per
+    assert table.loc["seeing", "stack_excluding"] > 0.9
+    assert table.loc["seeing", "mean_profile_range"] > 1.0
+    assert abs(table.loc["seeing", "stack_mle_p50"] - 2.0) < 0.05
+    assert list(pd.read_csv(tmp_path / "null.csv")["scene"]) == ["blind", "seeing"]
+    assert (tmp_path / "null.png").stat().st_size > 10_000
+
+
 def test_safe_threshold_few_samples():
     assert safe_threshold([0.1, 0.5], 0.68) == (0.5, False)  # rank 3 > n = 2: max, flagged
     tau, exact = safe_threshold(np.arange(1.0, 101.0), 0.68)

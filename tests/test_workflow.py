@@ -40,13 +40,16 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
     stats = _job_stats(proc.stdout)
     sim = cfg["simulation"]["scenes"]
     n_mult = len(cfg["simulation"]["multipliers"])
+    null = cfg["null_tests"]["scenes"]
     assert stats["simulate_shard"] == sum(
-        sim[s]["n_shards"] for s in ("train", "validation", "test_epl")
+        sim[s]["n_shards"] for s in ("train", "validation", "test_epl", *null)
     )
     assert stats["simulate_cdm_shard"] == n_mult * (
         sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"]
     )
-    assert stats["evaluate_profiles"] == sim["validation"]["n_shards"] + sim["test_epl"]["n_shards"]
+    assert stats["evaluate_profiles"] == sum(
+        sim[s]["n_shards"] for s in ("validation", "test_epl", *null)
+    )
     assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
     assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
     assert stats["fetch_data"] == 21  # one job per registered data file
@@ -57,13 +60,14 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         "plot_training_curves",
         "summarize_coverage",
         "measure_cdm_grid",
+        "null_tests",
         "analyze_hst",
         "plot_validation",
         "write_summary",
         "all",
     ):
         assert stats[rule] == 1, (rule, stats)
-    assert stats["plot_scene_examples"] == 5
+    assert stats["plot_scene_examples"] == 7
     assert "results/evaluate_profiles/nfw/a0.5/shard_0.h5" in proc.stdout
     assert "results/calibrate_threshold/N13.npz" in proc.stdout
     assert "results/checkpoints" not in proc.stdout  # never a declared output
@@ -92,6 +96,7 @@ STAGES = (
     "evaluate",
     "calibrate",
     "cdm_grid",
+    "null_tests",
     "hst",
     "figures",
     "summary",
@@ -195,7 +200,7 @@ def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
     assert stats["simulate_cdm_shard"] == n_mult * (
         sim["scenes"]["nfw"]["n_shards"] + sim["scenes"]["tnfw"]["n_shards"]
     )
-    assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 5, stats
+    assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 7, stats
     assert "train_estimator" not in stats and "evaluate_profiles" not in stats
     last_train = sim["scenes"]["train"]["n_shards"] - 1
     for path in (
@@ -217,6 +222,7 @@ STAGE_RULES = {
     "evaluate": {"evaluate_profiles", "evaluate_cdm_profiles"},
     "calibrate": {"calibrate_threshold", "summarize_coverage"},
     "cdm_grid": {"measure_cdm_grid"},
+    "null_tests": {"null_tests"},
     "hst": {"analyze_hst"},
     "figures": {"plot_training_curves", "plot_validation"},
     "summary": {"write_summary"},
@@ -228,19 +234,20 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
     assert proc.returncode == 0, proc.stderr
     stats = _job_stats(proc.stdout)
     expected = {
-        "simulate_shard": 4,
+        "simulate_shard": 6,
         "simulate_cdm_shard": 2,
         "compute_whitening": 1,
-        "plot_scene_examples": 5,
+        "plot_scene_examples": 7,
         "fit_lens_light": 1,
         "check_domain": 1,
         "train_estimator": 1,
         "plot_training_curves": 1,
-        "evaluate_profiles": 2,
+        "evaluate_profiles": 4,
         "evaluate_cdm_profiles": 2,
         "calibrate_threshold": 2,
         "summarize_coverage": 1,
         "measure_cdm_grid": 1,
+        "null_tests": 1,
         "analyze_hst": 1,
         "plot_validation": 1,
         "write_summary": 1,
@@ -256,9 +263,9 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
 def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
     """A stage switched off runs none of its rules, nor do the stages that need it."""
     needs = {
-        "train": {"evaluate", "calibrate", "cdm_grid", "hst", "figures", "summary"},
-        "evaluate": {"calibrate", "cdm_grid", "hst"},
-        "calibrate": {"hst"},
+        "train": {"evaluate", "calibrate", "cdm_grid", "null_tests", "hst", "figures", "summary"},
+        "evaluate": {"calibrate", "cdm_grid", "null_tests", "hst"},
+        "calibrate": {"null_tests", "hst"},
     }
     flags = workdir / "config" / f"tiny_no_{off}.yaml"
     flags.write_text(f"stages:\n  {off}: false\n")
@@ -289,6 +296,7 @@ FIGURES = (
     "fig4_concentration_grid",
     "fig5_hst_profiles",
     "fig6_hst_combined",
+    "null_tests",
 )
 
 
@@ -392,6 +400,7 @@ def test_real_run_tiny_reruns(tiny_run, workdir, data_dir):
     assert _job_stats(proc.stdout) == {
         "calibrate_threshold": 2,
         "summarize_coverage": 1,
+        "null_tests": 1,
         "analyze_hst": 1,
         "plot_validation": 1,
         "write_summary": 1,

@@ -187,6 +187,7 @@ STAGE_NEEDS: dict[str, tuple[str, ...]] = {
     "evaluate": ("train",),
     "calibrate": ("evaluate",),
     "cdm_grid": ("evaluate",),
+    "null_tests": ("calibrate",),
     "hst": ("calibrate",),
     "figures": ("train",),
     "summary": ("figures",),
@@ -290,6 +291,9 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
                 )
         if cdm["tnfw_scene"]:
             need_scene("cdm.tnfw_scene", cdm["tnfw_scene"])
+    if stages["null_tests"]:
+        for k, name in enumerate(config["null_tests"]["scenes"]):
+            need_scene(f"null_tests.scenes[{k}]", name)
     if stages["domain"]:
         need_scene("domain.scene", config["domain"]["scene"])
         lo, hi = config["domain"]["bounds"]

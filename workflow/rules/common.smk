@@ -155,12 +155,13 @@ GRID = config["inference"]["gamma_grid"]
 
 
 def eval_scenes():
-    """Scenes whose shards are evaluated: the calibration scenes and the CDM scenes."""
+    """Scenes whose shards are evaluated: the calibration, CDM and null-test scenes."""
     scenes = [
         CAL["single_scene"],
         CAL["stack_scene"],
         CDM["nfw_scene"],
         CDM["tnfw_scene"],
+        *(config["null_tests"]["scenes"] if STAGE_ON["null_tests"] else []),
     ]
     simulated = {job["scene"] for job in SHARD_JOBS}
     return [s for s in dict.fromkeys(scenes) if s in simulated]
@@ -240,6 +241,8 @@ def benchmark_files():
         out["calibrate"].append("results/benchmarks/summarize_coverage.tsv")
     if STAGE_ON["cdm_grid"]:
         out["cdm_grid"] = ["results/benchmarks/measure_cdm_grid.tsv"]
+    if null_tests_on():
+        out["null_tests"] = ["results/benchmarks/null_tests.tsv"]
     if STAGE_ON["hst"]:
         out["hst"] = ["results/benchmarks/analyze_hst.tsv"]
     if STAGE_ON["figures"]:
@@ -268,6 +271,8 @@ def all_targets():
         targets += rules.summarize_coverage.output
     if STAGE_ON["cdm_grid"]:
         targets += rules.measure_cdm_grid.output
+    if null_tests_on():
+        targets += rules.null_tests.output
     if STAGE_ON["hst"]:
         targets += rules.analyze_hst.output
     if STAGE_ON["figures"]:
@@ -282,7 +287,14 @@ def all_targets():
 # ---------------------------------------------------------------------------------------
 # Summary: its inputs are the results of the stages that run (missing ones are reported
 # as "not run"); its CSVs sit beside results/summary.md.
-SUMMARY_CSVS = ["hst_result", "cdm_prediction", "coverage", "trend", "stage_runtime"]
+SUMMARY_CSVS = [
+    "hst_result",
+    "cdm_prediction",
+    "coverage",
+    "null_tests",
+    "trend",
+    "stage_runtime",
+]
 # Hash of the whole validated config except the data location (machine-specific).
 CONFIG_HASH = subslope.config.config_hash(
     {k: v for k, v in config.items() if k != "data"}
@@ -290,8 +302,15 @@ CONFIG_HASH = subslope.config.config_hash(
 CONFIG_FILES = [os.path.relpath(f) for f in _CONFIG_FILES]
 
 
+def null_tests_on():
+    """The null_tests stage runs and has scenes to test."""
+    return STAGE_ON["null_tests"] and bool(config["null_tests"]["scenes"])
+
+
 def summary_inputs(wildcards):
     inputs = {}
+    if null_tests_on():
+        inputs["null_tests"] = rules.null_tests.output.csv
     if STAGE_ON["train"]:
         inputs["training_log"] = rules.train_estimator.output.log_csv
     if STAGE_ON["hst"]:

@@ -22,6 +22,7 @@ try:
         cdm_csv=inputs.get("cdm"),
         calibration_csv=inputs.get("calibration"),
         domain_csv=inputs.get("domain"),
+        null_csv=inputs.get("null_tests"),
         trend=trend,
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,

@@ -295,8 +295,9 @@ def coverage_figure(
     error bar, with the empirical thresholds τ_N (filled) and with Wilks' χ²₁ threshold
     (hollow); the target is the horizontal line. Right: coverage against credibility
     level (``levels``); ``coverages_empirical``/``coverages_wilks`` are one curve ``(L,)``
-    or a mapping ``N → (L,)``. A calibrated procedure follows the diagonal; below it
-    means over-confident intervals.
+    or a mapping ``N → (L,)``. A calibrated procedure follows the diagonal within the grey
+    ±2σ binomial band of the fewest held-out stacks of any N; below it means
+    over-confident intervals.
     """
     needed = {
         "n_images",
@@ -315,6 +316,14 @@ def coverage_figure(
     ax1, ax2 = fig.subplots(1, 2)
     _coverage_panel(ax1, table, level)
     _curves_panel(ax2, lv, coverages_empirical, coverages_wilks, level)
+    n_held = int(np.nanmin(table["n_heldout"])) if len(table) else 0
+    if n_held > 0:  # where a calibrated curve of n_held independent stacks may wander
+        half = 2 * np.sqrt(lv * (1 - lv) / n_held)
+        ax2.fill_between(
+            lv, lv - half, lv + half, color="0.6", alpha=0.25, lw=0, zorder=0,
+            label=f"±2σ binomial, {n_held} held-out stacks",
+        )  # fmt: skip
+        ax2.legend(fontsize=6.5, frameon=False, loc="upper left")
     footer(fig, run_name, source)
     return _finish(fig, "Calibration of the test-statistic threshold on held-out stacks")
 

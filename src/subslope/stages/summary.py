@@ -13,6 +13,7 @@ import numpy as np
 from subslope.io.atomic import write_csv, write_text
 from subslope.stages.calibrate import COVERAGE_COLUMNS
 from subslope.stages.cdm_grid import cdm_band
+from subslope.stages.null_tests import NULL_COLUMNS
 
 __all__ = ["SUMMARY_SECTIONS", "read_benchmarks", "write_summary"]
 
@@ -75,6 +76,7 @@ SUMMARY_SECTIONS = (
     "HST measurement",
     "CDM predictions (a = 1)",
     "Calibration and coverage",
+    "Null tests",
     "Estimator trend",
     "Run time per stage",
 )
@@ -139,6 +141,28 @@ def _hst_section(folder: Path, hst_csv) -> list[str]:
             ["system", "mle", "lower", "upper", "lower_at_edge", "upper_at_edge"]
             + (["inside_domain"] if "inside_domain" in hst.columns else []),
         ),
+    ]
+
+
+#: Columns of null_tests.csv left out of the summary's table (in the CSV beside it).
+NULL_HIDDEN = ("single_mle_p16", "single_mle_p84", "tau_1", "tau_n", "n_per_stack")
+
+
+def _null_section(folder: Path, null_csv) -> list[str]:
+    """The null scenes: does the estimator read γ from anything but the subhalos?"""
+    import pandas as pd
+
+    if not null_csv:
+        write_csv(folder / "null_tests.csv", [], NULL_COLUMNS)
+        return ["Stage `null_tests` not run (or null_tests.scenes empty).\n"]
+    table = pd.read_csv(null_csv)
+    write_text(folder / "null_tests.csv", table.to_csv(index=False))
+    return [
+        "Scenes without subhalos, where γ cannot be seen (figures/null_tests.png). An "
+        "estimator that reads γ from the subhalos only gives a flat mean profile "
+        "(`mean_profile_range` ≈ 0 nats), γ_MLE spread over the prior, and intervals that "
+        "exclude no part of it (`single_excluding`, `stack_excluding` ≈ 0):\n",
+        _md_table(table.to_dict("records"), [c for c in NULL_COLUMNS if c not in NULL_HIDDEN]),
     ]
 
 
@@ -261,14 +285,15 @@ def write_summary(
     cdm_csv=None,
     calibration_csv=None,
     domain_csv=None,
+    null_csv=None,
     trend: Mapping[str, float] | None = None,
     benchmarks: Mapping[str, Sequence] | None = None,
     nfw_scene: str = "nfw",
     tnfw_scene: str | None = "tnfw",
 ) -> Path:
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
-    ``coverage.csv``, ``trend.csv`` and ``stage_runtime.csv``. Any input may be None (its
-    stage was off): the section then says so."""
+    ``coverage.csv``, ``null_tests.csv``, ``trend.csv`` and ``stage_runtime.csv``. Any
+    input may be None (its stage was off): the section then says so."""
     out_md = Path(out_md)
     folder = out_md.parent
     folder.mkdir(parents=True, exist_ok=True)
@@ -281,6 +306,7 @@ def write_summary(
         _hst_section(folder, hst_csv),
         _cdm_section(folder, cdm_csv, (nfw_scene, tnfw_scene)),
         _calibration_section(folder, calibration_csv),
+        _null_section(folder, null_csv),
         _trend_section(folder, trend),
         _runtime_section(folder, benchmarks),
     ]
