@@ -115,11 +115,15 @@ def workdir(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def tiny_run(workdir):
-    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per session."""
+def tiny_run(tmp_path_factory):
+    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per session,
+    in a workflow folder of its own (the dry-run tests keep theirs untouched)."""
+    if not SNAKEMAKE.exists():
+        pytest.skip(f"snakemake not found next to {sys.executable}")
     data_dir = shared_data_dir()
     if not data_dir.is_dir():
         pytest.skip(f"real data folder not found: {data_dir}")
-    proc = run_snakemake(workdir, "--cores", "2", *TINY, mirror=data_dir, timeout=900)
+    root = workflow_copy(tmp_path_factory.mktemp("tiny_campaign"))
+    proc = run_snakemake(root, "--cores", "2", *TINY, mirror=data_dir, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    return workdir / "results"
+    return root / "results"

@@ -248,9 +248,13 @@ def test_sersic_source_keys(rng):
 def test_config_fragment_matches_presets_and_schema():
     cfg = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))
     from_fragment = scenes_from_config(cfg["scenes"])
+    from test_config import NULL_SCENES
     from test_config import SHIPPED_SCENE_CHOICES as realism
 
-    assert from_fragment == scenes_from_config({n: realism for n in PRESETS})
+    expected = {n: realism for n in PRESETS}
+    test_sets = {"images_per_set": 13, "source": {"split": "test"}, **realism}
+    expected.update({n: {**test_sets, **spec} for n, spec in NULL_SCENES.items()})
+    assert from_fragment == scenes_from_config(expected)
     frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
     schema = {
         "$schema": "https://json-schema.org/draft/2020-12/schema",

@@ -194,9 +194,8 @@ def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
     sim = cfgmod.load(workdir / "config" / "config.yaml", env=False)["simulation"]
     n_mult = len(sim["multipliers"])
     # one job per shard of the EPL scenes; per shard and multiplier of the CDM scenes
-    assert stats["simulate_shard"] == sum(
-        sim["scenes"][s]["n_shards"] for s in ("train", "validation", "test_epl")
-    )
+    epl = ("train", "validation", "test_epl", "null_nosub", "null_nosub_los")
+    assert stats["simulate_shard"] == sum(sim["scenes"][s]["n_shards"] for s in epl)
     assert stats["simulate_cdm_shard"] == n_mult * (
         sim["scenes"]["nfw"]["n_shards"] + sim["scenes"]["tnfw"]["n_shards"]
     )
@@ -285,7 +284,24 @@ def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
 
 
 # ---------------------------------------------------------------------------------------
-# the real tiny campaign, run once
+# the real tiny campaign, run once (in a folder of its own: tests/conftest.py)
+
+
+@pytest.fixture
+def campaign(tiny_run) -> Path:
+    """The folder of the finished tiny campaign."""
+    return tiny_run.parent
+
+
+#: The CSVs beside results/summary.md.
+SUMMARY_TABLES = (
+    "hst_result",
+    "cdm_prediction",
+    "coverage",
+    "null_tests",
+    "trend",
+    "stage_runtime",
+)
 
 FIGURES = (
     "hst_gallery",
@@ -301,7 +317,7 @@ FIGURES = (
 
 
 @pytest.mark.slow
-def test_real_run_tiny_simulation(tiny_run, workdir):
+def test_real_run_tiny_simulation(tiny_run, campaign):
     from subslope.io import shards
     from subslope.simulation import rerender
 
@@ -310,6 +326,8 @@ def test_real_run_tiny_simulation(tiny_run, workdir):
     rel = sorted(str(p.relative_to(results / "simulate_shard")) for p in paths)
     assert rel == [
         "nfw/a1/shard_0.h5",
+        "null_nosub/shard_0.h5",
+        "null_nosub_los/shard_0.h5",
         "test_epl/shard_0.h5",
         "tnfw/a1/shard_0.h5",
         "train/shard_0.h5",
@@ -322,21 +340,21 @@ def test_real_run_tiny_simulation(tiny_run, workdir):
     # the workflow's shard equals the package's (same config, same seed streams)
     with shards.open_shard(results / "simulate_shard" / "train" / "shard_1.h5") as s:
         np.testing.assert_array_equal(
-            rerender.rerender(s.path, 2, cosmos=workdir / "resources" / "cosmos"), s.images[2]
+            rerender.rerender(s.path, 2, cosmos=campaign / "resources" / "cosmos"), s.images[2]
         )
     white = json.loads((results / "compute_whitening" / "whitening.json").read_text())
     assert white["n_images"] == 6 and white["std"] > 0 and len(white["shards"]) == 2
     for scene in ("train", "validation", "test_epl", "nfw", "tnfw"):
         png = results / "figures" / f"scene_examples_{scene}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", scene
-    assert "plotted images" in (workdir / "logs" / "plot_scene_examples" / "train.log").read_text()
+    assert "plotted images" in (campaign / "logs" / "plot_scene_examples" / "train.log").read_text()
     assert (
-        "per image" in (workdir / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
+        "per image" in (campaign / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
     )
 
 
 @pytest.mark.slow
-def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
+def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     import h5py
     import pandas as pd
 
@@ -378,24 +396,24 @@ def test_real_run_tiny_campaign_outputs(tiny_run, workdir):
     for section in SUMMARY_SECTIONS:
         assert f"## {section}" in summary, section
     assert "`tiny`" in summary and "config/tiny.yaml" in summary
-    for name in ("hst_result", "cdm_prediction", "coverage", "trend", "stage_runtime"):
+    for name in SUMMARY_TABLES:
         assert (results / f"{name}.csv").is_file(), name
     runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
-    assert runtime.loc["simulate", "jobs"] == 7 and runtime.loc["train", "seconds"] > 0
+    assert runtime.loc["simulate", "jobs"] == 9 and runtime.loc["train", "seconds"] > 0
     assert runtime.loc["evaluate", "jobs"] == 4
-    assert (workdir / "logs" / "train_estimator.log").read_text().count("training done") == 1
+    assert (campaign / "logs" / "train_estimator.log").read_text().count("training done") == 1
 
 
 @pytest.mark.slow
-def test_real_run_tiny_second_run_does_nothing(tiny_run, workdir, data_dir):
-    proc = snakemake(workdir, "-n", *TINY, mirror=data_dir)
+def test_real_run_tiny_second_run_does_nothing(tiny_run, campaign, data_dir):
+    proc = snakemake(campaign, "-n", *TINY, mirror=data_dir)
     assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout + proc.stderr
 
 
 @pytest.mark.slow
-def test_real_run_tiny_reruns(tiny_run, workdir, data_dir):
+def test_real_run_tiny_reruns(tiny_run, campaign, data_dir):
     # -R calibrate_threshold: calibration and what depends on it, nothing upstream
-    proc = snakemake(workdir, "-n", *TINY, "-R", "calibrate_threshold", mirror=data_dir)
+    proc = snakemake(campaign, "-n", *TINY, "-R", "calibrate_threshold", mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     assert _job_stats(proc.stdout) == {
         "calibrate_threshold": 2,
@@ -407,13 +425,13 @@ def test_real_run_tiny_reruns(tiny_run, workdir, data_dir):
         "all": 1,
     }
     # appending a multiplier simulates and evaluates only the new one
-    more = workdir / "config" / "tiny_more.yaml"
+    more = campaign / "config" / "tiny_more.yaml"
     more.write_text(
-        (workdir / "config" / "tiny.yaml")
+        (campaign / "config" / "tiny.yaml")
         .read_text()
         .replace("multipliers: [1.0]", "multipliers: [1.0, 2.0]")
     )
-    proc = snakemake(workdir, "-n", "--configfile", str(more), mirror=data_dir)
+    proc = snakemake(campaign, "-n", "--configfile", str(more), mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     assert _job_stats(proc.stdout) == {
         "simulate_cdm_shard": 2,
