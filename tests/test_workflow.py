@@ -400,7 +400,11 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
         assert (results / f"{name}.csv").is_file(), name
     runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
     assert runtime.loc["simulate", "jobs"] == 9 and runtime.loc["train", "seconds"] > 0
-    assert runtime.loc["evaluate", "jobs"] == 4
+    assert runtime.loc["evaluate", "jobs"] == 6  # validation, test_epl, 2 CDM, 2 null scenes
+    assert runtime.loc["null_tests", "jobs"] == 1
+    null = pd.read_csv(results / "null_tests" / "null_tests.csv")
+    assert null["scene"].tolist() == ["null_nosub", "null_nosub_los"]
+    assert (null["n_stacks"] == 2).all() and (null["n_per_stack"] == 2).all()
     assert (campaign / "logs" / "train_estimator.log").read_text().count("training done") == 1
 
 
