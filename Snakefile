@@ -35,9 +35,7 @@ _CONFIG_FILES = [str(f) for f in workflow.overwrite_configfiles] or [
     "config/config.yaml"
 ]
 try:
-    _RAW = {}
-    for _file in _CONFIG_FILES:
-        _RAW = subslope.config.deep_merge(_RAW, subslope.config.read_layers(_file))
+    _RAW = subslope.config.read_files(_CONFIG_FILES)
 except subslope.config.ConfigError as exc:
     raise WorkflowError(str(exc)) from None
 # Snakemake's command-line config holds the --configfile keys and --config on top.

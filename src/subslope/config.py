@@ -41,6 +41,7 @@ __all__ = [
     "BASE_KEY",
     "deep_merge",
     "read_layers",
+    "read_files",
     "load",
     "apply_env_overrides",
     "canonical_json",
@@ -370,6 +371,15 @@ def read_layers(path: str | os.PathLike[str], _seen: tuple[Path, ...] = ()) -> d
     return deep_merge(read_layers(base_path, (*_seen, path.resolve())), raw)
 
 
+def read_files(paths) -> dict[str, Any]:
+    """The raw keys of several config files merged in order, each with its layers
+    (:func:`read_layers`): what ``snakemake --configfile A B`` and ``load([A, B])`` read."""
+    raw: dict[str, Any] = {}
+    for p in paths:
+        raw = deep_merge(raw, read_layers(p))
+    return raw
+
+
 def load(
     path: str | os.PathLike[str] | list[str | os.PathLike[str]],
     *,
@@ -389,10 +399,7 @@ def load(
         Apply :func:`apply_env_overrides` after validation (default True).
     """
     paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
-    raw: dict[str, Any] = {}
-    for p in paths:
-        raw = deep_merge(raw, read_layers(p))
-    raw = deep_merge(raw, overrides or {})
+    raw = deep_merge(read_files(paths), overrides or {})
     try:
         config = validate(raw)
     except ConfigError as exc:

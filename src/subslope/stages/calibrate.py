@@ -216,9 +216,8 @@ def summarize_coverage(
                     "coverage_wilks": float(z["coverage_wilks"]),
                     "coverage_wilks_err": float(z["coverage_wilks_err"]),
                     "level": float(z["level"]),
-                    # held-out coverage more than 2σ below the level
                     "overconfident": bool(
-                        float(z["coverage"]) < float(z["level"]) - 2 * float(z["coverage_err"])
+                        calibration.overconfident(z["coverage"], z["coverage_err"], z["level"])
                     ),
                 }
             )

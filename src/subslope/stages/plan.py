@@ -149,41 +149,45 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
     return problems
 
 
-def _psf_problems(config: Mapping[str, Any]) -> list[str]:
+def _not_registered(config, names, prefix: str, kind: str) -> tuple[list[str], str, str]:
+    """Those of ``names`` that are neither registered data (paths, or for
+    ``kind="folder"`` their first component) nor present under ``data.resources_dir`` as a
+    ``kind`` ("file" or "folder"); with the registered ones starting with ``prefix`` and
+    the resources folder, for the message."""
     from pathlib import Path
 
     from subslope.io.resources import load_registry
 
+    paths = [e.path for e in load_registry()]
+    registered = {p.split("/", 1)[0] for p in paths} if kind == "folder" else set(paths)
+    root = Path(config["data"]["resources_dir"])
+    present = Path.is_dir if kind == "folder" else Path.is_file
+    missing = [n for n in names if n.strip("/") not in registered and not present(root / n)]
+    known = ", ".join(sorted(r for r in registered if r.startswith(prefix)))
+    return missing, known, str(root)
+
+
+def _psf_problems(config: Mapping[str, Any]) -> list[str]:
     psf = config["instrument"]["psf"]
     if psf["source"] != "empirical":
         return []
-    registered = {e.path for e in load_registry()}
-    root = Path(config["data"]["resources_dir"])
-    if psf["file"] in registered or (root / psf["file"]).is_file():
-        return []
+    missing, known, root = _not_registered(config, [psf["file"]], "psf/", "file")
     return [
-        f"config key instrument.psf.file = {psf['file']!r}: neither a registered data file "
-        f"({', '.join(sorted(r for r in registered if r.startswith('psf/')))}) nor a file "
-        f"under data.resources_dir = {root}"
+        f"config key instrument.psf.file = {name!r}: neither a registered data file "
+        f"({known}) nor a file under data.resources_dir = {root}"
+        for name in missing
     ]
 
 
 def _cosmos_folder_problems(config: Mapping[str, Any]) -> list[str]:
-    from pathlib import Path
-
-    from subslope.io.resources import load_registry
-
     folder = config["simulation"]["sources"]["folder"]
     names = folder if isinstance(folder, list) else [folder]
-    registered = {e.path.split("/", 1)[0] for e in load_registry()}
-    root = Path(config["data"]["resources_dir"])
-    missing = [n for n in names if n.strip("/") not in registered and not (root / n).is_dir()]
+    missing, known, root = _not_registered(config, names, "cosmos", "folder")
     if not missing:
         return []
     return [
         f"config key simulation.sources.folder: {missing} neither a registered data folder "
-        f"({', '.join(sorted(r for r in registered if r.startswith('cosmos')))}) nor a "
-        f"folder under data.resources_dir = {root}"
+        f"({known}) nor a folder under data.resources_dir = {root}"
     ]
 
 

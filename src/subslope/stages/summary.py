@@ -14,6 +14,7 @@ from subslope.io.atomic import write_csv, write_text
 from subslope.stages.calibrate import COVERAGE_COLUMNS
 from subslope.stages.cdm_grid import cdm_band
 from subslope.stages.null_tests import NULL_COLUMNS
+from subslope.stats.calibration import overconfident
 
 __all__ = ["SUMMARY_SECTIONS", "read_benchmarks", "write_summary"]
 
@@ -222,7 +223,7 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
     write_text(folder / "coverage.csv", table.to_csv(index=False))
     if "overconfident" not in table:  # a table of an older run
         level = table["level"] if "level" in table else 0.68
-        table["overconfident"] = table["coverage"] < level - 2 * table["coverage_err"]
+        table["overconfident"] = overconfident(table["coverage"], table["coverage_err"], level)
     flagged = [int(n) for n in table.loc[table["overconfident"].astype(bool), "n_images"]]
     warning = (
         f"**Over-confident at N = {', '.join(map(str, flagged))}**: held-out coverage more "

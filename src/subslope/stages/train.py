@@ -61,11 +61,12 @@ def data_fingerprint(train_shards: Sequence, val_shards: Sequence, whitening) ->
     the whitening JSON. Refuses a whitening file whose recorded shard checksums are not
     those of ``train_shards`` now (it was computed from other images); a shard that
     changed because it is corrupt is named as such (:func:`subslope.io.shards.verify_shard`)."""
+    from subslope.io.atomic import read_json
     from subslope.io.shards import file_sha256, verify_shard
 
     sums = {os.fspath(p): file_sha256(p) for p in [*train_shards, *val_shards]}
     if isinstance(whitening, (str, os.PathLike)):
-        recorded = json.loads(Path(whitening).read_text(encoding="utf-8")).get("shards") or []
+        recorded = read_json(whitening).get("shards") or []
         stale = [
             r["path"]
             for r in recorded

@@ -36,6 +36,7 @@ __all__ = [
     "expected_coverage",
     "STACK_MODES",
     "make_stacks",
+    "overconfident",
     "split",
     "stack_t_true",
     "threshold",
@@ -289,6 +290,11 @@ def coverage(
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
     return p, se, (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def overconfident(coverage, coverage_err, level):
+    """Held-out coverage more than 2σ (its binomial error) below the credibility level."""
+    return np.asarray(coverage) < np.asarray(level) - 2 * np.asarray(coverage_err)
 
 
 def _levels(levels) -> np.ndarray:
