@@ -33,6 +33,8 @@ SHIPPED_DEVIATIONS = {
     ("training", "num_workers"),
     ("training", "checkpoint_every"),
     ("null_tests", "scenes"),
+    ("systematics", "variants"),
+    ("systematics", "common"),
 }
 
 #: The null-test scenes of config/config.yaml: the test sets without subhalos.

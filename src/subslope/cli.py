@@ -19,6 +19,9 @@ train --config C --train SHARD... --val SHARD... --whitening J --out DIR [--ckpt
     workflow's train_estimator rule): DIR/model.pt and DIR/training_log.csv.
 analyze-hst --config C --model M --thresholds J --out DIR [--hst DIR] [--cdm CSV]
     Profiles, intervals and figures 5-6 of the real HST lenses (as rule analyze_hst).
+systematics [--config C ...] [--cores N] [--only NAME ...] [--table-only] [-- SNAKEMAKE ARGS]
+    Run the campaign under every variant of systematics.variants (each in its own folder,
+    sharing the data and the shard cache) and write the systematics table and figure.
 
 Later stages add their sub-commands in :func:`build_parser`.
 """
@@ -346,6 +349,80 @@ def _add_real_data_commands(commands) -> None:
     )
     p.add_argument("--seed", type=int, default=None, help="seed (default: the config's)")
     p.set_defaults(func=_domain_check)
+    _add_systematics_command(commands)
+
+
+def _systematics(args: argparse.Namespace) -> int:
+    import subprocess
+    from pathlib import Path
+
+    from subslope.config import ConfigError, deep_merge, read_files, validate
+    from subslope.stages.systematics import (
+        SystematicsError,
+        read_variants,
+        run_variant,
+        systematics_table,
+    )
+
+    files = args.config or ["config/config.yaml"]
+    try:
+        raw = read_files(files)
+        section = validate(raw)["systematics"]
+        variants = read_variants(raw, root=Path.cwd())
+    except (ConfigError, SystematicsError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if args.only:
+        unknown = sorted(set(args.only) - {v.name for v in variants})
+        if unknown:
+            known = ", ".join(v.name for v in variants) or "none"
+            print(f"error: --only {unknown}: no such variant (known: {known})", file=sys.stderr)
+            return 1
+        variants = [v for v in variants if v.name in args.only]
+    if not variants:
+        print(f"error: {', '.join(files)}: systematics.variants is empty", file=sys.stderr)
+        return 1
+    extra = [a for a in args.snakemake_args if a != "--"]
+    snakefile = Path(args.snakefile)
+    for variant in variants if not args.table_only else []:
+        try:
+            run_variant(variant, snakefile=snakefile, cores=args.cores, extra=extra)
+        except subprocess.CalledProcessError as exc:
+            print(
+                f"error: the campaign of variant {variant.name} failed (exit {exc.returncode});"
+                f" its logs are in {variant.folder}/logs",
+                file=sys.stderr,
+            )
+            return 1
+    reference = deep_merge(raw, raw.get("systematics", {}).get("common") or {})
+    try:
+        systematics_table(variants, reference, section["table"], run_name=raw["run_name"])
+    except SystematicsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {section['table']}/systematics.csv, .md and figures/systematics.*")
+    return 0
+
+
+def _add_systematics_command(commands) -> None:
+    p = commands.add_parser(
+        "systematics", help="the campaign under every simulator variant, and their table"
+    )
+    p.add_argument(
+        "--config", nargs="+", default=None,
+        help="campaign config file(s), read as --configfile (default config/config.yaml)",
+    )  # fmt: skip
+    p.add_argument("--cores", type=int, default=2, help="cores of each variant's Snakemake")
+    p.add_argument("--only", nargs="+", default=None, help="run_names of the variants to run")
+    p.add_argument(
+        "--table-only", action="store_true", help="write the table from finished variants"
+    )
+    p.add_argument("--snakefile", default="Snakefile", help="the workflow (default ./Snakefile)")
+    p.add_argument(
+        "snakemake_args", nargs=argparse.REMAINDER,
+        help="after --: more Snakemake arguments, e.g. -- --profile profiles/slurm",
+    )  # fmt: skip
+    p.set_defaults(func=_systematics)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

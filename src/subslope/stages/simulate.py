@@ -10,17 +10,44 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from subslope.config import config_hash
 from subslope.figures.data import plot_scene_examples_from_shard
+from subslope.io.shard_cache import code_digest, put_in_cache, take_from_cache
+from subslope.io.shards import FORMAT_VERSION
 from subslope.nre.whitening import compute_whitening
+from subslope.simulation.resolve import simulation_sections
 from subslope.simulation.shard import simulate_shard
 from subslope.stages.plan import RUN_ONLY_RENDER_KEYS
 
 __all__ = [
     "simulate_shard",
     "simulate_shard_job",
+    "shard_cache_key",
     "compute_whitening",
     "plot_scene_examples_from_shard",
 ]
+
+
+def shard_cache_key(
+    job: Mapping[str, Any], scene: str, shard: int, multiplier: float | None = None
+) -> str:
+    """Key of one shard in a shard cache (:mod:`subslope.io.shard_cache`): SHA-256 of
+    what its images depend on: the resolved sections of ``job``
+    (:func:`subslope.simulation.resolve.simulation_sections`, with the multipliers up to
+    this shard's, whose position sets its seed), the shard index, the multiplier, the
+    shard format and the package's code (:func:`subslope.io.shard_cache.code_digest`).
+    ``n_shards`` is not part of it: shard k of a scene is the same file in a campaign of
+    4 shards and in one of 8."""
+    return config_hash(
+        {
+            "sections": {**simulation_sections(job, scene), "multipliers": None},
+            "multipliers": job["simulation"].get("multipliers"),
+            "shard": int(shard),
+            "multiplier": None if multiplier is None else float(multiplier),
+            "format_version": FORMAT_VERSION,
+            "code": code_digest(),
+        }
+    )
 
 
 def simulate_shard_job(
@@ -36,13 +63,21 @@ def simulate_shard_job(
     (:func:`subslope.stages.plan.shard_job_config`, the rule's params); ``run`` the
     workflow's config, from which only the values that must not rerun a finished shard
     are taken (``data``: where the resources live; ``simulation.render.batch_size`` and
-    ``device``)."""
+    ``device``; ``simulation.shard_cache``: a shard of the same key there is taken
+    instead of simulated, and a new one is put there)."""
     config = copy.deepcopy(dict(job))
     config["data"] = copy.deepcopy(run["data"])
     render = run["simulation"]["render"]
     config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
+    cache = run["simulation"].get("shard_cache")
+    key = shard_cache_key(job, scene, shard, multiplier) if cache else ""
+    if cache and take_from_cache(cache, scene, key, out_path):
+        return Path(out_path)
     # The workflow keeps the previous shard in place while its job runs (Snakemake's
     # update(): put back if the job fails); the new one replaces it atomically.
-    return simulate_shard(
+    path = simulate_shard(
         config, scene, shard, out_path, multiplier=multiplier, progress=False, overwrite=True
     )
+    if cache:
+        put_in_cache(cache, scene, key, path)
+    return path

@@ -1,0 +1,223 @@
+"""The systematics variants (subslope.stages.systematics) and the shard cache
+(subslope.io.shard_cache): variant configs, the changes column, cache keys, and two
+variants of the tiny campaign run through `subslope systematics` sharing its shards."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pandas as pd
+import pytest
+import yaml
+from conftest import REPO_ROOT, shared_data_dir
+
+from subslope import config as C
+from subslope.io.shard_cache import CODE_PARTS, cached_path, link_or_copy, take_from_cache
+from subslope.stages.plan import plan_problems, shard_job_config
+from subslope.stages.simulate import shard_cache_key
+from subslope.stages.systematics import (
+    SYSTEMATICS_COLUMNS,
+    SystematicsError,
+    config_changes,
+    read_variants,
+    variant_config,
+)
+
+CONFIG = REPO_ROOT / "config" / "config.yaml"
+TINY = REPO_ROOT / "config" / "tiny.yaml"
+SHIPPED = ("realism", "paper", "lens_light_table1", "sheet_origin", "sources_bundled",
+           "sources_multi_sersic")  # fmt: skip
+
+
+def _campaign(path: Path = CONFIG) -> dict:
+    return C.read_files([path])
+
+
+@pytest.mark.parametrize("path", [CONFIG, TINY], ids=["reduced", "tiny"])
+def test_every_shipped_variant_is_a_valid_campaign(path):
+    variants = read_variants(_campaign(path), root=REPO_ROOT)
+    assert tuple(v.name for v in variants) == SHIPPED
+    for v in variants:
+        cfg = C.validate(v.config)
+        assert cfg["run_name"] == v.name
+        assert v.folder == REPO_ROOT / "results" / "variants" / v.name
+        assert plan_problems(cfg) == [], v.name
+
+
+def test_variant_config_layers_and_absolute_paths(tmp_path):
+    campaign = _campaign()
+    overlay = {"run_name": "x", "seed": 7}
+    merged = variant_config(campaign, overlay, root=tmp_path, shard_cache="cache")
+    assert merged["seed"] == 7
+    assert "systematics" not in merged
+    assert merged["data"]["mirror"] == str((tmp_path / "../shared/data").resolve())
+    assert merged["data"]["resources_dir"] == str(tmp_path / "resources")
+    assert merged["simulation"]["shard_cache"] == str(tmp_path / "cache")
+    # systematics.common sits between the campaign and the overlay
+    assert merged["simulation"]["scenes"]["train"]["n_shards"] == 3
+    assert merged["simulation"]["multipliers"] == [1.0]
+
+
+def test_the_changes_column_lists_what_each_variant_changes():
+    campaign = _campaign()
+    reference = C.deep_merge(campaign, campaign["systematics"]["common"])
+    changes = {v.name: config_changes(reference, v.config) for v in read_variants(campaign)}
+    assert changes["realism"] == "none"
+    assert changes["lens_light_table1"] == "scenes.*.lens_light.prior=table1"
+    assert changes["sources_bundled"] == "simulation.sources.folder=[cosmos]"
+    assert changes["sources_multi_sersic"] == "scenes.*.source.kind=multi_sersic"
+    sheet = changes["sheet_origin"].split("; ")
+    assert "scenes.{nfw,test_epl,tnfw,train,validation}.subhalos.sheet_centre=origin" in sheet
+    assert any(p.startswith("scenes.{") and "null_nosub_los" in p for p in sheet)
+    assert not any("null_nosub," in p or "null_nosub}" in p for p in sheet)
+    paper = set(changes["paper"].split("; "))
+    assert paper == set(sheet) | {
+        "scenes.*.lens_light.prior=table1",
+        "simulation.sources.folder=[cosmos]",
+    }
+
+
+def _write(path: Path, data: dict) -> Path:
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(
+    "overlay, message",
+    [
+        ({"seed": 3}, "must set a run_name of its own"),
+        ({"run_name": "reduced"}, "must set a run_name of its own"),
+        ({"run_name": "v", "seed": -1}, "config key seed"),
+        ({"run_name": "v", "simulation": {"sources": {"folder": []}}}, "simulation.sources"),
+    ],
+    ids=["no-run-name", "campaign-run-name", "bad-seed", "bad-folder"],
+)
+def test_a_bad_variant_file_is_named(tmp_path, overlay, message):
+    variant = _write(tmp_path / "v.yaml", overlay)
+    campaign = C.deep_merge(_campaign(), {"systematics": {"variants": [str(variant)]}})
+    with pytest.raises(SystematicsError, match=message) as info:
+        read_variants(campaign, root=REPO_ROOT)
+    assert str(variant) in str(info.value)
+
+
+def test_two_variants_of_one_name_and_a_missing_file_are_refused(tmp_path):
+    a = _write(tmp_path / "a.yaml", {"run_name": "same"})
+    b = _write(tmp_path / "b.yaml", {"run_name": "same"})
+    campaign = C.deep_merge(_campaign(), {"systematics": {"variants": [str(a), str(b)]}})
+    with pytest.raises(SystematicsError, match="both have run_name 'same'"):
+        read_variants(campaign)
+    campaign["systematics"]["variants"] = [str(tmp_path / "gone.yaml")]
+    with pytest.raises(SystematicsError, match="gone.yaml does not exist"):
+        read_variants(campaign)
+
+
+def test_the_cache_key_follows_the_images_and_not_the_shard_count():
+    config = C.load(TINY, env=False)
+    key = shard_cache_key(shard_job_config(config, "test_epl"), "test_epl", 0)
+    more = C.deep_merge(config, {"simulation": {"scenes": {"test_epl": {"n_shards": 5}}}})
+    assert shard_cache_key(shard_job_config(more, "test_epl"), "test_epl", 0) == key
+    assert shard_cache_key(shard_job_config(config, "test_epl"), "test_epl", 1) != key
+    for change in (
+        {"seed": 99},
+        {"scenes": {"test_epl": {"subhalos": {"sheet_centre": "origin"}}}},
+        {"scenes": {"test_epl": {"lens_light": {"prior": "table1"}}}},
+        {"simulation": {"render": {"dtype": "float64"}}},
+        {"simulation": {"scenes": {"test_epl": {"images_per_shard": 10}}}},
+    ):
+        other = C.deep_merge(config, change)
+        assert shard_cache_key(shard_job_config(other, "test_epl"), "test_epl", 0) != key, change
+    batch = C.deep_merge(config, {"simulation": {"render": {"batch_size": 7}}})
+    assert shard_cache_key(shard_job_config(batch, "test_epl"), "test_epl", 0) == key
+
+
+def test_the_code_parts_of_the_key_exist():
+    package = REPO_ROOT / "src" / "subslope"
+    assert all((package / part).exists() for part in CODE_PARTS)
+    assert "nre" not in CODE_PARTS and "stages" not in CODE_PARTS
+
+
+def _shards(results: Path) -> list[Path]:
+    return sorted((results / "simulate_shard").rglob("*.h5"))
+
+
+def test_a_corrupt_cached_shard_is_removed_not_used(tiny_run, tmp_path):
+    shard = _shards(tiny_run)[0]
+    cached = link_or_copy(shard, cached_path(tmp_path / "cache", "s", "k"))
+    shutil.copyfile(shard, cached)  # a copy of its own, to corrupt
+    with h5py.File(cached, "r") as fh:
+        offset = fh["images"].id.get_chunk_info(0).byte_offset
+    with open(cached, "r+b") as fh:
+        fh.seek(offset + 10)
+        fh.write(b"\xff\xff\xff\xff")
+    assert not take_from_cache(tmp_path / "cache", "s", "k", tmp_path / "out.h5")
+    assert not cached.exists() and not (tmp_path / "out.h5").exists()
+
+
+@pytest.fixture(scope="module")
+def systematics_run(tiny_run, tmp_path_factory):
+    """`subslope systematics` over the realism and sheet_origin variants of the tiny
+    campaign, in the tiny run's folder (its data and its shard cache), writing the
+    variants and the table into a folder of their own."""
+    root = tiny_run.parent
+    out = tmp_path_factory.mktemp("systematics")
+    overlay = _write(
+        out / "where.yaml",
+        {"systematics": {"folder": str(out / "variants"), "table": str(out / "table")}},
+    )
+    exe = Path(sys.executable).with_name("subslope")
+    command = [str(exe), "systematics", "--config", "config/tiny.yaml", str(overlay),
+               "--only", "realism", "sheet_origin", "--cores", "2"]  # fmt: skip
+    env = dict(os.environ, OMP_NUM_THREADS="1", SUBSLOPE_DATA_MIRROR=str(shared_data_dir()))
+    proc = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=1500)
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
+    return {"root": root, "out": out, "command": command, "env": env}
+
+
+def test_the_table_has_one_row_per_variant_from_its_summary(systematics_run):
+    out = systematics_run["out"]
+    table = pd.read_csv(out / "table" / "systematics.csv", keep_default_na=False)
+    assert list(table.columns) == list(SYSTEMATICS_COLUMNS)
+    assert list(table["variant"]) == ["realism", "sheet_origin"]
+    assert (out / "table" / "systematics.md").read_text().count("\n| ") == 2
+    for ext in ("pdf", "png"):
+        assert (out / "table" / "figures" / f"systematics.{ext}").stat().st_size > 1000
+    for row in table.to_dict("records"):
+        results = out / "variants" / row["variant"] / "results"
+        hst = pd.read_csv(results / "hst_result.csv").iloc[0]
+        assert row["hst_gamma_mle"] == pytest.approx(float(hst["gamma_mle"]))
+        assert row["hst_lower"] == pytest.approx(float(hst["lower"]))
+        coverage = pd.read_csv(results / "coverage.csv").set_index("n_images")
+        assert row["n_max"] == 2
+        assert row["coverage_nmax"] == pytest.approx(float(coverage.loc[2, "coverage"]))
+        assert row["domain_lenses"] == 13
+        assert row["null_scene"] == "null_nosub_los"
+    assert table.set_index("variant").loc["realism", "changes"] == "none"
+
+
+def test_variants_share_the_shards_they_do_not_alter(systematics_run, tiny_run):
+    variants = systematics_run["out"] / "variants"
+    own = {p.relative_to(tiny_run): os.stat(p).st_ino for p in _shards(tiny_run)}
+    realism = {p.relative_to(variants / "realism" / "results"): os.stat(p).st_ino
+               for p in _shards(variants / "realism" / "results")}  # fmt: skip
+    assert realism == own  # every shard of realism is the tiny campaign's file
+    sheet = {p.relative_to(variants / "sheet_origin" / "results"): os.stat(p).st_ino
+             for p in _shards(variants / "sheet_origin" / "results")}  # fmt: skip
+    same = {str(p) for p in sheet if sheet[p] == own[p]}
+    assert same == {"simulate_shard/null_nosub/shard_0.h5"}  # no subhalos, no LoS
+    logs = variants / "sheet_origin" / "logs" / "simulate_shard"
+    assert "taken from the cache" in (logs / "null_nosub" / "shard_0.log").read_text()
+    assert "taken from the cache" not in (logs / "train" / "shard_0.log").read_text()
+
+
+def test_a_second_call_reruns_nothing(systematics_run):
+    proc = subprocess.run(
+        systematics_run["command"], cwd=systematics_run["root"], env=systematics_run["env"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stderr.count("Nothing to be done") == 2, proc.stderr[-3000:]
