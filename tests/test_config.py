@@ -40,7 +40,7 @@ SHIPPED_DEVIATIONS = {
 #: The null-test scenes of config/config.yaml: the test sets without subhalos.
 NULL_SCENES = {
     "null_nosub": {"subhalos": {"count": 0}, "components": {"los": False}},
-    "null_nosub_los": {"subhalos": {"count": 0}},
+    "null_nosub_los": {"subhalos": {"count": 0}, "los": {"profile": "nfw"}},
 }
 
 #: Scene keys without a schema default (their preset differs between scenes; see the

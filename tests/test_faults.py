@@ -181,7 +181,13 @@ def test_the_cli_writes_the_shard_the_workflow_wrote(tiny_run, tmp_path, data_di
 
     config = tmp_path / "tiny.yaml"
     config.write_text(
-        yaml.safe_dump({"base": str(TINY_YAML), "data": {"resources_dir": str(data_dir)}})
+        yaml.safe_dump(
+            {
+                "base": str(TINY_YAML),
+                "data": {"resources_dir": str(data_dir)},
+                "simulation": {"shard_cache": str(tmp_path / "cache")},
+            }
+        )
     )
     out = tmp_path / "shard_0.h5"
     args = ["simulate", "--config", str(config), "--scene", "validation", "--shard", "0"]

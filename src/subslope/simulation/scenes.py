@@ -393,10 +393,12 @@ class Scene:
 
     @property
     def uses_concentration(self) -> bool:
-        """True when some active component is NFW/tNFW (a CDM scene)."""
+        """True when the concentration multiplier a acts on some active component (a CDM
+        scene, simulated once per multiplier): NFW/tNFW subhalos, or NFW LoS halos with
+        ``concentration.apply_to_los``. NFW LoS halos alone draw a = 1 concentrations."""
         c = self.components
         return (c.subhalos and self.subhalos.profile != "epl") or (
-            c.los and self.los.profile == "nfw"
+            c.los and self.los.profile == "nfw" and self.concentration.apply_to_los
         )
 
     @classmethod
