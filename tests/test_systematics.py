@@ -17,7 +17,7 @@ import yaml
 from conftest import REPO_ROOT, shared_data_dir
 
 from subslope import config as C
-from subslope.io.shard_cache import CODE_PARTS, cached_path, link_or_copy, take_from_cache
+from subslope.io.shard_cache import CODE_PARTS, cached_path, take_from_cache
 from subslope.stages.plan import plan_problems, shard_job_config
 from subslope.stages.simulate import shard_cache_key
 from subslope.stages.systematics import (
@@ -147,8 +147,11 @@ def _shards(results: Path) -> list[Path]:
 
 def test_a_corrupt_cached_shard_is_removed_not_used(tiny_run, tmp_path):
     shard = _shards(tiny_run)[0]
-    cached = link_or_copy(shard, cached_path(tmp_path / "cache", "s", "k"))
+    cached = cached_path(tmp_path / "cache", "s", "k")
+    cached.parent.mkdir(parents=True)
     shutil.copyfile(shard, cached)  # a copy of its own, to corrupt
+    assert take_from_cache(tmp_path / "cache", "s", "k", tmp_path / "good.h5")
+    assert (tmp_path / "good.h5").read_bytes() == shard.read_bytes()
     with h5py.File(cached, "r") as fh:
         offset = fh["images"].id.get_chunk_info(0).byte_offset
     with open(cached, "r+b") as fh:
