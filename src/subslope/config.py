@@ -29,6 +29,7 @@ import yaml
 
 __all__ = [
     "ConfigError",
+    "RUN_ONLY_RENDER_KEYS",
     "MIRROR_ENV_VAR",
     "schema_path",
     "load_schema",
@@ -313,6 +314,11 @@ def apply_env_overrides(config: dict[str, Any]) -> dict[str, Any]:
 
 #: Top-level key of a config file naming the file it is layered over (relative to it).
 BASE_KEY = "base"
+
+#: Keys of ``simulation.render`` that change where and how fast a shard is made, never
+#: its bits: left out of a shard job's params, of the config a shard records and of its
+#: cache key, so changing one reruns no shard.
+RUN_ONLY_RENDER_KEYS = ("batch_size", "device", "compile_cache")
 
 
 def deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:

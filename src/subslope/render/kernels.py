@@ -10,8 +10,10 @@ fresh compile).
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -26,7 +28,7 @@ from subslope.physics.pairs.sums import (
 )
 from subslope.render.settings import RenderSettings
 
-__all__ = ["FEW_MEMBERS", "Kernels", "clear_cache", "kernels_for"]
+__all__ = ["FEW_MEMBERS", "Kernels", "clear_cache", "kernels_for", "use_compile_cache"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +59,21 @@ class Kernels:
     near: Any
     peaks: Any
     compiled: bool
+
+
+def use_compile_cache(folder: str | os.PathLike[str] | None) -> dict[str, str]:
+    """Point torch.compile's on-disk caches at ``folder`` (made absolute, created):
+    ``TORCHINDUCTOR_CACHE_DIR`` and ``TRITON_CACHE_DIR`` (``<folder>/triton``), each only
+    where the environment does not set it already. Call before the first compile;
+    returns the variables in effect."""
+    if folder is not None:
+        root = Path(folder).resolve()
+        root.mkdir(parents=True, exist_ok=True)
+        os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(root))
+        os.environ.setdefault("TRITON_CACHE_DIR", str(root / "triton"))
+    return {
+        k: os.environ[k] for k in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR") if k in os.environ
+    }
 
 
 def _compiled_or_eager(name: str, device: torch.device):

@@ -31,7 +31,7 @@ _INSTRUMENT = schema_defaults("instrument")
 #: Fields of :class:`RenderSettings` that come from the ``instrument`` section.
 INSTRUMENT_FIELDS = ("npix", "pixel_scale", "zero_point")
 #: Keys of ``simulation.render`` that are not render settings (they steer the shard job).
-NOT_RENDER_KEYS = ("batch_size",)
+NOT_RENDER_KEYS = ("batch_size", "compile_cache")
 
 
 @dataclass(frozen=True)

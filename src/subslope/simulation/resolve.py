@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from subslope.config import RUN_ONLY_RENDER_KEYS
 from subslope.simulation.scenes import Scene, merge_onto_preset
 
 __all__ = ["resolved_scene", "scene_multipliers", "simulation_sections"]
@@ -37,7 +38,7 @@ def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]
     config = _config.validate(config)
     _, spec = resolved_scene(config, scene)
     sim = config["simulation"]
-    render = {k: v for k, v in sim["render"].items() if k not in ("batch_size", "device")}
+    render = {k: v for k, v in sim["render"].items() if k not in RUN_ONLY_RENDER_KEYS}
     return {
         "seed": config["seed"],
         "instrument": config["instrument"],

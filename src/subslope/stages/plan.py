@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from subslope import config as _config
+from subslope.config import RUN_ONLY_RENDER_KEYS
 from subslope.simulation.resolve import resolved_scene, scene_multipliers
 
 __all__ = [
@@ -74,7 +75,6 @@ def derived_seed(seed: int, name: str) -> int:
 
 #: ``simulation.render`` keys that change how a shard job runs, not its images: they
 #: reach the job from the workflow's config, not through its (rerun-triggering) params.
-RUN_ONLY_RENDER_KEYS = ("batch_size", "device")
 
 
 def shard_job_config(

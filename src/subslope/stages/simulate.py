@@ -10,14 +10,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from subslope.config import config_hash
+from subslope.config import RUN_ONLY_RENDER_KEYS, config_hash
 from subslope.figures.data import plot_scene_examples_from_shard
 from subslope.io.shard_cache import code_digest, put_in_cache, take_from_cache
 from subslope.io.shards import FORMAT_VERSION
 from subslope.nre.whitening import compute_whitening
+from subslope.render.kernels import use_compile_cache
 from subslope.simulation.resolve import simulation_sections
 from subslope.simulation.shard import simulate_shard
-from subslope.stages.plan import RUN_ONLY_RENDER_KEYS
 
 __all__ = [
     "simulate_shard",
@@ -62,13 +62,15 @@ def simulate_shard_job(
     """One shard job of the workflow: ``job`` is its resolved configuration
     (:func:`subslope.stages.plan.shard_job_config`, the rule's params); ``run`` the
     workflow's config, from which only the values that must not rerun a finished shard
-    are taken (``data``: where the resources live; ``simulation.render.batch_size`` and
-    ``device``; ``simulation.shard_cache``: a shard of the same key there is taken
+    are taken (``data``: where the resources live; ``simulation.render.batch_size``,
+    ``device`` and ``compile_cache``, :func:`subslope.render.kernels.use_compile_cache`;
+    ``simulation.shard_cache``: a shard of the same key there is taken
     instead of simulated, and a new one is put there)."""
     config = copy.deepcopy(dict(job))
     config["data"] = copy.deepcopy(run["data"])
     render = run["simulation"]["render"]
     config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
+    use_compile_cache(render.get("compile_cache"))
     cache = run["simulation"].get("shard_cache")
     key = shard_cache_key(job, scene, shard, multiplier) if cache else ""
     if cache and take_from_cache(cache, scene, key, out_path):
