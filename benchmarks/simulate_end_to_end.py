@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_info  # noqa: E402
 
 from subslope import config as C  # noqa: E402
+from subslope.io.shards import write_shard  # noqa: E402
 from subslope.simulation import shard as S  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,7 +74,7 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             out = S.simulate_images(config, "train", args.images, seq)
             tw = time.perf_counter()
-            S._shards.write_shard(
+            write_shard(
                 path, **{k: out[k] for k in ("images", "params", "psf", "subhalos", "los")},
                 sources=out["sources"] or None, attrs={"scene": "train"}, overwrite=True,
             )  # fmt: skip
