@@ -18,7 +18,6 @@ CUDA), median of ``--steps`` steps after one warm-up.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import sys
@@ -56,17 +55,6 @@ def _train_step(loss_fn, opt, g: torch.Tensor, x: torch.Tensor, amp: bool) -> No
     opt.step()
 
 
-def _to(population, device: torch.device):
-    """A population with every tensor field on ``device`` (numpy fields stay)."""
-    if population is None:
-        return None
-    fields = {}
-    for f in dataclasses.fields(population):
-        v = getattr(population, f.name)
-        fields[f.name] = v.to(device) if isinstance(v, torch.Tensor) else v
-    return type(population)(**fields)
-
-
 def render_rows(device: torch.device, batches, repeats: int, compile_mode: str) -> list[dict]:
     """Images/s of :func:`subslope.render.pipeline.render` per batch size."""
     rows = []
@@ -76,7 +64,7 @@ def render_rows(device: torch.device, batches, repeats: int, compile_mode: str) 
         batch = make_scene("train", n_img=n, n_sub=1500, with_los=True, seed=n)
         draw = time.perf_counter() - t
         psf = batch.psf.to(device)
-        subs, los = _to(batch.subhalos, device), _to(batch.los, device)
+        subs, los = batch.subhalos, batch.los  # numpy: render moves them to the device
 
         args = (batch.macro, psf, settings)
         first = _timed(device, R.render, *args, subhalos=subs, los=los)

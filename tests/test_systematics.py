@@ -26,6 +26,7 @@ from subslope.stages.systematics import (
     SystematicsError,
     config_changes,
     read_variants,
+    reference_config,
     variant_config,
 )
 
@@ -66,7 +67,7 @@ def test_variant_config_layers_and_absolute_paths(tmp_path):
 
 def test_the_changes_column_lists_what_each_variant_changes():
     campaign = _campaign()
-    reference = C.deep_merge(campaign, campaign["systematics"]["common"])
+    reference = reference_config(campaign)
     changes = {v.name: config_changes(reference, v.config) for v in read_variants(campaign)}
     assert changes["realism"] == "none"
     assert changes["lens_light_table1"] == "scenes.*.lens_light.prior=table1"

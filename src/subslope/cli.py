@@ -356,10 +356,11 @@ def _systematics(args: argparse.Namespace) -> int:
     import subprocess
     from pathlib import Path
 
-    from subslope.config import ConfigError, deep_merge, read_files, validate
+    from subslope.config import ConfigError, read_files, validate
     from subslope.stages.systematics import (
         SystematicsError,
         read_variants,
+        reference_config,
         run_variant,
         systematics_table,
     )
@@ -394,9 +395,10 @@ def _systematics(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return 1
-    reference = deep_merge(raw, raw.get("systematics", {}).get("common") or {})
     try:
-        systematics_table(variants, reference, section["table"], run_name=raw["run_name"])
+        systematics_table(
+            variants, reference_config(raw), section["table"], run_name=raw["run_name"]
+        )
     except SystematicsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

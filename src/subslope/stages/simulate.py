@@ -33,15 +33,14 @@ def shard_cache_key(
 ) -> str:
     """Key of one shard in a shard cache (:mod:`subslope.io.shard_cache`): SHA-256 of
     what its images depend on: the resolved sections of ``job``
-    (:func:`subslope.simulation.resolve.simulation_sections`, with the multipliers up to
-    this shard's, whose position sets its seed), the shard index, the multiplier, the
-    shard format and the package's code (:func:`subslope.io.shard_cache.code_digest`).
+    (:func:`subslope.simulation.resolve.simulation_sections`; a job holds the multipliers
+    up to its own, whose position sets its seed), the shard index, the multiplier, the
+    shard format and the code that makes shards (:func:`subslope.io.shard_cache.code_digest`).
     ``n_shards`` is not part of it: shard k of a scene is the same file in a campaign of
     4 shards and in one of 8."""
     return config_hash(
         {
-            "sections": {**simulation_sections(job, scene), "multipliers": None},
-            "multipliers": job["simulation"].get("multipliers"),
+            "sections": simulation_sections(job, scene),
             "shard": int(shard),
             "multiplier": None if multiplier is None else float(multiplier),
             "format_version": FORMAT_VERSION,

@@ -34,6 +34,7 @@ from subslope.io.atomic import write_csv, write_text
 __all__ = [
     "SYSTEMATICS_COLUMNS",
     "Variant",
+    "reference_config",
     "variant_config",
     "read_variants",
     "config_changes",
@@ -45,9 +46,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Keys holding paths relative to the campaign's working directory: a variant runs in a
-#: folder of its own, so they are made absolute in its config.
-PATH_KEYS = (("data", "mirror"), ("data", "resources_dir"))
+#: Keys of ``data`` holding paths relative to the campaign's working directory: a variant
+#: runs in a folder of its own, so they are made absolute in its config.
+DATA_PATH_KEYS = ("mirror", "resources_dir")
 
 #: Columns of ``systematics.csv``, one row per variant.
 SYSTEMATICS_COLUMNS = (
@@ -96,6 +97,14 @@ def _absolute(value: str, root: Path) -> str:
     return value if os.path.isabs(value) else str((root / value).resolve())
 
 
+def reference_config(campaign: Mapping[str, Any]) -> dict[str, Any]:
+    """The campaign's raw config with ``systematics.common`` merged in: what every
+    variant's overlay sits on, and what the table's ``changes`` column is measured
+    against."""
+    common = (campaign.get("systematics") or {}).get("common") or {}
+    return _config.deep_merge(campaign, common)
+
+
 def variant_config(
     campaign: Mapping[str, Any],
     overlay: Mapping[str, Any],
@@ -104,19 +113,18 @@ def variant_config(
     shard_cache: str | os.PathLike[str],
 ) -> dict[str, Any]:
     """The raw config of one variant: ``campaign`` (raw keys), its
-    ``systematics.common``, then ``overlay``; paths of :data:`PATH_KEYS` made absolute
+    ``systematics.common``, then ``overlay``; paths of :data:`DATA_PATH_KEYS` made absolute
     against ``root`` (the campaign's working directory), ``simulation.shard_cache`` set
     to ``shard_cache`` and the ``systematics`` section dropped (a variant runs no
     variants)."""
     root = Path(root)
-    common = (campaign.get("systematics") or {}).get("common") or {}
-    merged = _config.deep_merge(_config.deep_merge(campaign, common), overlay)
+    merged = _config.deep_merge(reference_config(campaign), overlay)
     merged.pop("systematics", None)
     merged.pop(_config.BASE_KEY, None)
     data = merged.setdefault("data", {})
     defaults = _config.schema_defaults("data")
-    for section, key in PATH_KEYS:
-        value = merged.get(section, {}).get(key, defaults.get(key))
+    for key in DATA_PATH_KEYS:
+        value = data.get(key, defaults.get(key))
         if value is not None:
             data[key] = _absolute(str(value), root)
     merged.setdefault("simulation", {})["shard_cache"] = _absolute(str(shard_cache), root)
@@ -174,7 +182,8 @@ def config_changes(reference: Mapping[str, Any], variant: Mapping[str, Any]) -> 
     ``reference``, as ``key=value`` joined by '; '; a change made in several scenes is
     written once, as ``scenes.{a,b}.key`` (``scenes.*.key`` when in all of them). Paths
     and ``run_name`` are not listed."""
-    ignore = {("run_name",), ("simulation", "shard_cache"), *PATH_KEYS}
+    ignore = {("run_name",), ("simulation", "shard_cache")}
+    ignore |= {("data", key) for key in DATA_PATH_KEYS}
     old = _leaves(_config.validate(reference))
     new = _leaves(_config.validate(variant))
     grouped: dict[tuple[tuple[str, ...], str], list[str]] = {}
