@@ -4,8 +4,11 @@
 #   2. render throughput at the mean training scene (N_sub = 1500 + LoS) for batch sizes
 #      64-1024, and one estimator training step (ResNet-50, batch 1000, fp32 and AMP)
 #      (benchmarks/gpu_throughput.py);
+#   3. training images/s from shards and from the live stream (training.data: stream),
+#      rendering on the GPU in the training process and in 2 spawned workers
+#      (benchmarks/stream_throughput.py);
 # written to OUT_DIR (default $OUT, else results/gpu_check): gpu_tests.log,
-# gpu_throughput.md (the table) and gpu_check.log.
+# gpu_throughput.md and stream_throughput.md (the tables) and gpu_check.log.
 #
 #   bash benchmarks/gpu_check.sh [OUT_DIR]
 #
@@ -32,6 +35,10 @@ export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
   echo "== gpu tests"
   timeout 240 "$py" -m pytest -q -m gpu -p no:cacheprovider tests 2>&1 | tee "$out/gpu_tests.log" | tail -5
   echo "== throughput"
-  timeout 240 "$py" benchmarks/gpu_throughput.py --device cuda --out "$out/gpu_throughput.md"
+  timeout 200 "$py" benchmarks/gpu_throughput.py --device cuda --out "$out/gpu_throughput.md"
+  echo "== stream"
+  timeout 120 "$py" benchmarks/stream_throughput.py --device cuda --batch 256 --batches 4 \
+    --repeats 2 --workers 0 2 --data "${SUBSLOPE_DATA_MIRROR:-../shared/data}" \
+    --out "$out/stream_throughput.md"
   date
 } 2>&1 | tee "$out/gpu_check.log"

@@ -5,7 +5,12 @@ Each repeat simulates ``--images`` images of the ``train`` scene of ``--config``
 N_sub fixed at ``--n-sub`` and δ_los fixed at 1 (the prior mean), through
 :func:`subslope.simulation.shard.simulate_shard` (compile 'on', warm inductor cache after
 the first repeat, which is left out), one thread, and reads the timings the shard job
-logs. Prints per-image medians over ``--repeats`` repeats.
+logs. With ``--lenstronomy K`` each repeat also renders (and adds noise to) ``K`` images
+of the same kind of scene with lenstronomy (``benchmarks/simulate_vs_lenstronomy.py``'s
+model: train preset, N_sub = ``--n-sub`` + LoS, Sérsic source, γ = 2), alternating with
+subslope's shard, so that both see the same load; the ratio of lenstronomy's render-only
+time to subslope's end-to-end time is printed. Prints per-image medians over
+``--repeats`` repeats.
 
     OMP_NUM_THREADS=1 SUBSLOPE_DATA_MIRROR=../shared/data \\
         .venv/bin/python benchmarks/simulate_end_to_end.py [--images 32] [--repeats 5]
@@ -61,14 +66,23 @@ def main(argv=None) -> int:
     ap.add_argument("--n-sub", type=int, default=1500)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--compile", choices=("auto", "on", "off"), default="on")
+    ap.add_argument("--lenstronomy", type=int, default=0, metavar="K")
     data = Path(os.environ.get("SUBSLOPE_DATA_MIRROR", ROOT / "resources"))
     ap.add_argument("--data", type=Path, default=data)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     config = _config(args)
     rows: dict[str, list[float]] = {k: [] for k in (*STAGES, "total", "file_kb")}
+    reference = _lenstronomy(args) if args.lenstronomy else None
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats + 1):
+            if reference is not None:
+                t = time.perf_counter()
+                reference()
+                if r:
+                    rows.setdefault("lenstronomy", []).append(
+                        1e3 * (time.perf_counter() - t) / args.lenstronomy
+                    )
             path = Path(tmp) / f"shard_{r}.h5"
             seq = np.random.SeedSequence(entropy=r, spawn_key=(7,))
             t = time.perf_counter()
@@ -94,8 +108,38 @@ def main(argv=None) -> int:
     print("|---|---|---|---|")
     for k, v in rows.items():
         unit = "KB" if k == "file_kb" else "ms"
-        print(f"| {k} ({unit}) | {statistics.median(v):.2f} | {min(v):.2f} | {max(v):.2f} |")
+        name = "lenstronomy render + noise" if k == "lenstronomy" else k
+        print(f"| {name} ({unit}) | {statistics.median(v):.2f} | {min(v):.2f} | {max(v):.2f} |")
+    if reference is not None:
+        ratio = statistics.median(rows["lenstronomy"]) / statistics.median(rows["total"])
+        print(f"lenstronomy render-only / subslope end to end: {ratio:.1f}x")
     return 0
+
+
+def _lenstronomy(args):
+    """A callable rendering ``--lenstronomy`` images with lenstronomy, plus noise."""
+    import _common as common
+
+    from subslope.validation.lenstronomy import lenstronomy_model, lenstronomy_noise
+
+    batch = common.make_scene(
+        "train", args.lenstronomy, args.n_sub, True, seed=0, gamma_label=2.0, delta_los=1.0
+    )
+    models = [
+        lenstronomy_model(batch.macro, batch.psf, i, subhalos=batch.subhalos, los=batch.los)
+        for i in range(batch.n)
+    ]
+    band = lenstronomy_noise()
+    rng = np.random.default_rng(0)
+    for m in models:
+        m.image()  # numba compiles on first use
+
+    def run():
+        for m in models:
+            im = m.image()
+            im + band.noise_for_model(im, seed=int(rng.integers(2**31)))
+
+    return run
 
 
 if __name__ == "__main__":

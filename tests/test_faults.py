@@ -301,7 +301,7 @@ def test_shard_of_an_older_format_is_refused(tmp_path):
     path = _shard(tmp_path / "shard_0.h5")
     with h5py.File(path, "r+") as fh:
         fh.attrs["format_version"] = 1
-    with pytest.raises(ShardError, match=r"format version 1; this subslope reads version 2"):
+    with pytest.raises(ShardError, match=r"format version 1; this subslope reads version 3"):
         open_shard(path)
 
 

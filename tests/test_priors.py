@@ -140,3 +140,26 @@ def test_bad_specs_raise_naming_the_key(spec, needle):
 def test_sample_requires_generator():
     with pytest.raises(TypeError):
         Uniform(0.0, 1.0).sample(np.random.RandomState(0), 3)
+
+
+def test_truncated_normal_quantile_matches_scipy():
+    from scipy import stats
+
+    from subslope.simulation.priors import truncated_normal_quantile
+
+    rng = np.random.default_rng(5)
+    u = np.concatenate([rng.random(4000), [0.0, 1.0, 1e-15, 1 - 1e-15]])
+    cases = [(-0.5, 0.3), (-6.5, 0.31), (-0.31, 6.5), (2.0, 9.0), (-9.0, -2.0), (-40, 40)]
+    for a, b in cases:
+        x = truncated_normal_quantile(u, a, b)
+        ref = stats.truncnorm.ppf(u, a, b)
+        assert np.all((x >= a) & (x <= b)), (a, b)
+        np.testing.assert_allclose(x, ref, rtol=1e-7, atol=1e-9, err_msg=f"[{a}, {b}]")
+    # far tails, where the normal CDF underflows: scipy's own evaluation
+    x = truncated_normal_quantile(u, 40.0, 41.0)
+    np.testing.assert_allclose(x, stats.truncnorm.ppf(u, 40.0, 41.0), rtol=1e-12)
+    # broadcasting, per-element bounds
+    a = np.array([-1.0, 0.5, -3.0])
+    np.testing.assert_allclose(
+        truncated_normal_quantile(0.25, a, a + 1), stats.truncnorm.ppf(0.25, a, a + 1), rtol=1e-10
+    )

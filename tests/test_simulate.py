@@ -16,6 +16,7 @@ from subslope.simulation import los as losmod
 from subslope.simulation import rerender
 from subslope.simulation import shard as simulate
 from subslope.simulation.macro import sample_macro
+from subslope.simulation.precision import SUBHALO_DTYPES
 from subslope.simulation.scenes import Scene
 from subslope.stages import plan
 from tests.conftest import REPO_ROOT
@@ -57,8 +58,15 @@ def test_shard_layout(train_shard):
             assert s.params[key].shape == (n,), key
         assert "c_multiplier" not in s.params
         assert set(s.sources) == {"ident", "z_phot", "pixel_scale", "mag"}  # renormalised
-        assert s.subhalos["counts"].sum() == s.params["n_sub"].sum() == s.subhalos["amp"].size
+        assert s.subhalos["counts"].sum() == s.params["n_sub"].sum() == s.subhalos["mass"].size
         assert s.los["counts"].sum() == s.los["z"].size
+        # drawn fields at their stored precision, heaviest first; amplitudes derived on reading
+        assert {k: v.dtype for k, v in s.subhalos.items() if k != "counts"} == {
+            k: np.dtype(SUBHALO_DTYPES[k]) for k in ("mass", "x", "y", "gamma", "e1", "e2")
+        }
+        assert all(v.dtype == np.float32 for k, v in s.los.items() if k != "counts")
+        first = s.subhalos["mass"][: s.subhalos["counts"][0]]
+        assert np.all(np.diff(first) <= 0)
         a = s.attrs
         assert a["scene"] == "train" and a["n_images"] == n and len(a["config_hash"]) == 64
         assert a["seed_spawn_key"][0] == simulate.scene_id("train") and a["seed_spawn_key"][1] == 0
@@ -119,7 +127,7 @@ def test_cdm_shards(config, scene, tmp_path):
     with shards.open_shard(path) as s:
         assert "gamma_sub" not in s.params and np.all(s.params["c_multiplier"] == 1.0)
         assert s.attrs["subhalo_profile"] == scene and s.attrs["los_profile"] == "nfw"
-        assert ("r_t" in s.subhalos) == (scene == "tnfw")
+        assert {"mass", "c200", "x", "y"} == set(s.subhalos) - {"counts"}  # r_s, r_t derived
         assert "c200" in s.los and "amp" not in s.los
         assert s.attrs["multiplier"] == 1.0 and s.attrs["seed_spawn_key"][2] == 0
     np.testing.assert_array_equal(rerender.rerender(path, 1), shards.open_shard(path).images[1])

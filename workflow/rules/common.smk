@@ -125,10 +125,29 @@ def example_shard(scene):
     return (ones or jobs)[0]["path"]
 
 
+STREAMING = subslope.config.STREAMED_SCENE in config["simulation"][
+    "scenes"
+] and subslope.config.STREAMED_SCENE not in subslope.config.shard_scenes(config)
+
+
+def whitening_shards():
+    """The shards the whitening statistics come from: the training shards, or the
+    validation shards when the training images are streamed (training.data: stream)."""
+    return shard_files("validation") if STREAMING else shard_files("train")
+
+
+def stream_job():
+    """The resolved configuration of the streamed scene (None unless training.data is
+    stream): a change of it retrains, as a shard job's would resimulate."""
+    if not STREAMING:
+        return None
+    return subslope.stages.plan.shard_job_config(config, subslope.config.STREAMED_SCENE)
+
+
 def simulation_targets():
     """Shards, whitening statistics (if there are training shards) and scene figures."""
     targets = [job["path"] for job in SHARD_JOBS]
-    if shard_files("train"):
+    if whitening_shards():
         targets.append(rules.compute_whitening.output.json)
     targets += expand(rules.plot_scene_examples.output.png, scene=SIM_SCENES)
     return targets
@@ -215,7 +234,7 @@ def benchmark_files():
             .replace(".h5", ".tsv")
             for job in SHARD_JOBS
         ]
-        if shard_files("train"):
+        if whitening_shards():
             out["simulate"].append("results/benchmarks/compute_whitening.tsv")
     if STAGE_ON["domain"]:
         out["domain"] = [

@@ -40,7 +40,7 @@ use rule simulate_shard as simulate_cdm_shard with:
 
 rule compute_whitening:
     input:
-        shards=lambda wildcards: shard_files("train"),
+        shards=lambda wildcards: whitening_shards(),
     output:
         json=update("results/compute_whitening/whitening.json"),
     log:

@@ -3,7 +3,9 @@
 # results/checkpoints/train_estimator/<key>/, which is NOT a declared output: Snakemake
 # never deletes it (failed job, walltime kill, --forcerun), so a restarted job resumes
 # from last.pt. <key> hashes the training section and the data, so a changed config or
-# changed shards start a fresh folder instead of resuming an incompatible run.
+# changed shards start a fresh folder instead of resuming an incompatible run. With
+# training.data: stream there are no training shards: the job simulates its images while
+# it trains (subslope.nre.stream), from the train scene's resolved config (params.stream).
 
 TRAINING = subslope.stages.train.training_section(config)
 CKPT_KEY = subslope.stages.train.checkpoint_key(
@@ -13,7 +15,7 @@ CKPT_KEY = subslope.stages.train.checkpoint_key(
     {
         scene: simulation_hash(scene)
         for scene in ("train", "validation")
-        if shard_files(scene)
+        if shard_files(scene) or (scene == "train" and STREAMING)
     },
 )
 
@@ -23,6 +25,9 @@ rule train_estimator:
         train=lambda wildcards: shard_files("train"),
         val=lambda wildcards: shard_files("validation"),
         whitening=rules.compute_whitening.output.json,
+        stream_data=lambda wildcards: (
+            [*resource_files("psf/"), *cosmos_files()] if STREAMING else []
+        ),
     output:
         model=update("results/train_estimator/model.pt"),
         log_csv=update("results/train_estimator/training_log.csv"),
@@ -42,5 +47,6 @@ rule train_estimator:
         training=TRAINING,
         ckpt_dir=f"results/checkpoints/train_estimator/{CKPT_KEY}",
         device=config["training"]["device"],
+        stream=stream_job(),
     script:
         "../scripts/train_estimator.py"

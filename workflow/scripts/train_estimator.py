@@ -7,7 +7,9 @@ import os
 import torch
 
 from subslope.devices import pick_device
+from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
+from subslope.stages.simulate import runnable_config
 from subslope.stages.train import run_training
 
 log_to_file(snakemake.log[0])
@@ -19,6 +21,10 @@ try:
     logging.info(
         "checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir
     )
+    stream = snakemake.params.stream
+    if stream is not None:  # training.data: stream
+        verify_files(list(snakemake.input.stream_data))
+        stream = runnable_config(stream, snakemake.config)
     summary = run_training(
         snakemake.params.training,
         list(snakemake.input.train),
@@ -27,6 +33,7 @@ try:
         os.path.dirname(snakemake.output.model),
         snakemake.params.ckpt_dir,
         device=snakemake.params.device,
+        stream=stream,
     )
     logging.info("training done: %s", summary)
 except Exception:

@@ -3,7 +3,8 @@
 A *shard* is one HDF5 file holding ``N`` simulated images and everything needed to
 reproduce them (layout version :data:`FORMAT_VERSION`)::
 
-    images                  (N, H, W) float32, chunked per image, gzip + shuffle
+    images                  (N, H, W) float32, chunked per image, gzip + shuffle (as
+                            every other non-empty dataset)
     params/<name>           (N,) per-image (macro) parameters of
     subslope.simulation.macro.sample_macro:
                             float64 or int64; always theta_e, lens_x, lens_y, set_index,
@@ -12,9 +13,13 @@ reproduce them (layout version :data:`FORMAT_VERSION`)::
     params/noise_seed       (N,) uint64, torch seed of each image's noise
     sources/<field>         (N,) per image, COSMOS scenes: ident, z_phot, pixel_scale
                             (arcsec, at z_source), [mag]
-    subhalos/<field>        flat arrays of all subhalos, image by image
+    subhalos/<field>        flat arrays of all subhalos, image by image, heaviest first:
+                            the drawn fields only, at the precision they were drawn at
+                            (mass, c200 float32; x, y, gamma, e1, e2 float16; see
+                            subslope.simulation.precision); the lens parameters (EPL
+                            amplitude, NFW r_s, alpha_rs, r_t) are derived on reading
     subhalos/counts         (N,) int64 subhalos per image
-    los/<field>, los/counts the same for line-of-sight halos
+    los/<field>, los/counts the same for line-of-sight halos, every field float32
     psf                     (k, k) float64 PSF kernel used for the convolution
 
 File attributes: ``format`` (:data:`FORMAT_NAME`), ``format_version``, ``scene``,
@@ -69,7 +74,7 @@ __all__ = [
 ]
 
 FORMAT_NAME = "subslope-shard"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 #: Datasets every shard has (the estimator relies on these names).
 REQUIRED_DATASETS = (
@@ -108,12 +113,14 @@ def _attr_value(value: Any) -> Any:
 
 def _dataset(group: h5py.Group, name: str, data: np.ndarray, **kwargs) -> None:
     data = np.asarray(data)
-    if data.dtype.kind == "f":
+    if data.dtype.kind == "f" and data.dtype not in (np.float16, np.float32):
         data = data.astype(np.float64)
     elif data.dtype.kind in "iu" and data.dtype not in (np.uint64,):
         data = data.astype(np.int64)
     elif data.dtype.kind == "b":
         data = data.astype(np.int8)
+    if not data.size:
+        kwargs = {}
     group.create_dataset(name, data=data, track_times=False, fletcher32=data.size > 0, **kwargs)
 
 
@@ -181,7 +188,7 @@ def write_shard(
         ):
             g = f.create_group(group, track_order=False)
             for key in sorted(arrays):
-                _dataset(g, key, arrays[key])
+                _dataset(g, key, arrays[key], **comp)
         meta = dict(attrs)
         meta.update(format=FORMAT_NAME, format_version=FORMAT_VERSION, n_images=n)
         for key in sorted(meta):
@@ -394,7 +401,8 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
         if version != FORMAT_VERSION:
             raise ShardError(
                 f"{path} has shard format version {version!r}; this subslope reads version "
-                f"{FORMAT_VERSION} (version 2 added per-chunk checksums); {_recovery(path)}"
+                f"{FORMAT_VERSION} (version 2 added per-chunk checksums, version 3 stores the "
+                f"halo populations at the precision they are drawn at); {_recovery(path)}"
             )
         if not bool(handle.attrs.get("complete", False)):
             raise ShardError(

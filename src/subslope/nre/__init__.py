@@ -5,6 +5,7 @@
 - :mod:`~subslope.nre.models`: ResNet ratio estimator ``f(γ, x) = ln r̂(x|γ)``.
 - :mod:`~subslope.nre.loss`: NRE / balanced-NRE binary cross-entropy.
 - :mod:`~subslope.nre.data`: streaming, reproducibly shuffled batches from HDF5 shards.
+- :mod:`~subslope.nre.stream`: batches simulated while training (``training.data: stream``).
 - :mod:`~subslope.nre.training_config`: the training section's defaults and hash.
 - :mod:`~subslope.nre.train`: resumable training loop and the ``model.pt`` artifact.
 - :mod:`~subslope.nre.evaluate`: ``ln r̂`` of images on the γ grid.
@@ -30,6 +31,8 @@ _NAMES = {
     "read_whitening": "preprocess",
     "ShardBatches": "data",
     "make_loader": "data",
+    "batch_tensors": "data",
+    "StreamBatches": "stream",
     "load_estimator": "train",
     "train": "train",
     "log_ratio_profiles": "evaluate",

@@ -50,7 +50,7 @@ from subslope.ragged import counts_to_offsets
 
 from .preprocess import preprocess, read_whitening
 
-__all__ = ["ShardBatches", "make_loader", "read_labels", "shard_lengths"]
+__all__ = ["ShardBatches", "batch_tensors", "make_loader", "read_labels", "shard_lengths"]
 
 PARAM_KEYS = ("gamma_sub", "theta_e", "lens_x", "lens_y")
 
@@ -249,22 +249,47 @@ class ShardBatches(Dataset):
                     params[k][sel] = rows_k[rows[sel] - lo]
                 else:  # unlabelled shard (require_label=False)
                     params[k][sel] = np.nan
-        x = torch.from_numpy(images)
-        if self.whitening is not None:
-            x = preprocess(
-                x,
-                torch.from_numpy(params["theta_e"]),
-                torch.from_numpy(params["lens_x"]),
-                torch.from_numpy(params["lens_y"]),
-                *self.whitening,
-                pixel_scale=self.pixel_scale,
-                mask_factor=self.mask_factor,
-            )
-        out = {"x": x.unsqueeze(1), "gamma": torch.from_numpy(params["gamma_sub"])}
-        for k in ("theta_e", "lens_x", "lens_y"):
-            out[k] = torch.from_numpy(params[k])
-        out["index"] = torch.from_numpy(self.offsets[shard] + rows)
-        return out
+        return batch_tensors(
+            images,
+            params,
+            self.offsets[shard] + rows,
+            self.whitening,
+            pixel_scale=self.pixel_scale,
+            mask_factor=self.mask_factor,
+        )
+
+
+def batch_tensors(
+    images: np.ndarray,
+    params,
+    index: np.ndarray,
+    whitening=None,
+    *,
+    pixel_scale: float = PIXEL_SCALE,
+    mask_factor: float | None = 1.5,
+) -> dict[str, torch.Tensor]:
+    """One training batch as the estimator takes it, from images ``(n, H, W)`` (e⁻/s) and
+    float32 ``params`` (``gamma_sub``, ``theta_e``, ``lens_x``, ``lens_y``): ``x`` ``(n, 1, H,
+    W)`` pre-processed with :func:`~subslope.nre.preprocess.preprocess` when ``whitening``
+    (mean, std) is given, the parameters as ``gamma``, ``theta_e``, ``lens_x``, ``lens_y``
+    and ``index`` (int64, the images' numbers)."""
+    x = torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32))
+    p = {k: torch.from_numpy(np.ascontiguousarray(params[k], dtype=np.float32)) for k in PARAM_KEYS}
+    if whitening is not None:
+        x = preprocess(
+            x,
+            p["theta_e"],
+            p["lens_x"],
+            p["lens_y"],
+            *whitening,
+            pixel_scale=pixel_scale,
+            mask_factor=mask_factor,
+        )
+    out = {"x": x.unsqueeze(1), "gamma": p["gamma_sub"]}
+    for k in ("theta_e", "lens_x", "lens_y"):
+        out[k] = p[k]
+    out["index"] = torch.from_numpy(np.asarray(index, dtype=np.int64))
+    return out
 
 
 def _worker_init(_worker_id: int) -> None:
@@ -273,7 +298,7 @@ def _worker_init(_worker_id: int) -> None:
 
 
 def make_loader(
-    dataset: ShardBatches,
+    dataset: Dataset,
     *,
     start: int = 0,
     num_workers: int = 0,
@@ -282,16 +307,23 @@ def make_loader(
 ) -> DataLoader:
     """A ``DataLoader`` over batches ``start, start+1, …`` of the dataset's current epoch.
 
-    The loader gets its own ``torch.Generator`` (seeded from the dataset's seed and epoch):
-    creating an iterator then draws nothing from the global torch RNG, so a training run
-    resumed from a checkpoint sees the same global random stream as an uninterrupted one.
+    ``dataset``: a :class:`ShardBatches` or a :class:`subslope.nre.stream.StreamBatches`
+    (anything with ``seed``, ``epoch`` and one batch per item; its optional
+    ``multiprocessing_context`` is the workers' start method). The loader gets its own
+    ``torch.Generator`` (seeded from the dataset's seed and epoch): creating an iterator
+    then draws nothing from the global torch RNG, so a training run resumed from a
+    checkpoint sees the same global random stream as an uninterrupted one.
     """
     gen = torch.Generator().manual_seed(
         int(np.random.SeedSequence([dataset.seed, dataset.epoch]).generate_state(1)[0])
     )
     kwargs = {"generator": gen}
     if num_workers > 0:
-        kwargs.update(worker_init_fn=_worker_init, prefetch_factor=prefetch_factor or 2)
+        kwargs.update(
+            worker_init_fn=_worker_init,
+            prefetch_factor=prefetch_factor or 2,
+            multiprocessing_context=getattr(dataset, "multiprocessing_context", None),
+        )
     return DataLoader(
         dataset,
         batch_size=None,

@@ -55,6 +55,7 @@ from .data import ShardBatches, make_loader, read_labels
 from .loss import NRELoss
 from .models import RatioEstimator, build_model, model_card
 from .preprocess import read_whitening
+from .stream import StreamBatches
 from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
 
 __all__ = [
@@ -139,7 +140,10 @@ def train(
     ----------
     config: the ``training:`` section (:func:`subslope.nre.training_config.training_defaults`
         fills missing keys).
-    train_shards, val_shards: HDF5 shard paths.
+    train_shards: HDF5 shard paths, or a :class:`subslope.nre.stream.StreamBatches` of
+        images simulated while training (``training.data: stream``; its batch size must be
+        ``batch_size``).
+    val_shards: HDF5 shard paths.
     whitening: ``(mean, std)``, a mapping or the whitening JSON path.
     out_dir: receives ``model.pt`` and ``training_log.csv``.
     ckpt_dir: checkpoints (``last.pt``, ``best.pt``); resumed from when present.
@@ -234,7 +238,11 @@ class _Run:
 
 def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_path: Path) -> _Run:
     """Seed every generator, build the model, optimiser, scheduler and losses."""
-    labels = read_labels(train_shards)
+    labels = (
+        train_shards.labels()
+        if isinstance(train_shards, StreamBatches)
+        else read_labels(train_shards)
+    )
     gamma_mean, gamma_std = float(labels.mean()), float(labels.std())
     if not gamma_std > 0:
         raise ValueError(
@@ -489,18 +497,7 @@ def _train(
     run = _start(cfg, chash, train_shards, device, amp_dtype, last_path, best_path)
     _resume(run, ckpt_dir)
     state = run.state
-    train_ds = ShardBatches(
-        train_shards,
-        cfg["batch_size"],
-        whitening,
-        shuffle=True,
-        seed=int(cfg["seed"]),
-        block_size=cfg["block_size"],
-        window=cfg["shuffle_window"],
-        drop_last=True,
-        pixel_scale=cfg["pixel_scale"],
-        mask_factor=cfg["mask_factor"],
-    )
+    train_ds = _training_batches(cfg, train_shards, whitening)
     val_ds = ShardBatches(
         val_shards,
         cfg["val_batch_size"] or cfg["batch_size"],
@@ -529,6 +526,32 @@ def _train(
     model_path = _write_model(run, whitening, out_dir)
     _write_log(state["history"], out_dir / "training_log.csv")
     return _summary(state, model_path, finished=True)
+
+
+def _training_batches(cfg, train_shards, whitening):
+    """The training set: the stream as given (with the run's whitening), or the shards
+    shuffled per epoch."""
+    if isinstance(train_shards, StreamBatches):
+        if train_shards.batch_size != cfg["batch_size"]:
+            raise ValueError(
+                f"the training stream has batches of {train_shards.batch_size} images, "
+                f"training.batch_size is {cfg['batch_size']}"
+            )
+        train_shards.whitening = whitening
+        train_shards.pixel_scale, train_shards.mask_factor = cfg["pixel_scale"], cfg["mask_factor"]
+        return train_shards
+    return ShardBatches(
+        train_shards,
+        cfg["batch_size"],
+        whitening,
+        shuffle=True,
+        seed=int(cfg["seed"]),
+        block_size=cfg["block_size"],
+        window=cfg["shuffle_window"],
+        drop_last=True,
+        pixel_scale=cfg["pixel_scale"],
+        mask_factor=cfg["mask_factor"],
+    )
 
 
 def _summary(state, model_path, *, finished: bool) -> dict[str, Any]:

@@ -79,6 +79,8 @@ def resolve_config(config: Mapping[str, Any] | None) -> dict[str, Any]:
             f"training.batch_size must be >= 2 (negatives are formed within a batch), "
             f"got {cfg['batch_size']}"
         )
+    if cfg["data"] not in ("shards", "stream"):
+        raise ValueError(f"training.data must be 'shards' or 'stream', got {cfg['data']!r}")
     if cfg["amp"] not in ("auto", "bf16", "fp16", "off"):
         raise ValueError(f"training.amp must be one of auto, bf16, fp16, off; got {cfg['amp']!r}")
     if not (

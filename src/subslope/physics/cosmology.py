@@ -234,8 +234,14 @@ def epl_log_amp_from_m200(m200, gamma, z_lens, z_source, cosmo=None) -> np.ndarr
     if np.any(bad):
         raise ValueError(f"gamma must lie in (1, 3); got {gamma[bad].ravel()[:3]}")
     m200 = _check_positive("m200", m200)
-    ln_r200 = np.log(r200_arcsec(m200, z_lens, cosmo))
-    ln_sigma = np.log(sigma_crit(z_lens, z_source, cosmo))
+    if np.ndim(z_lens) == 0 and np.ndim(z_source) == 0:  # one plane: its logs cached
+        ln_rho200, ln_sigma = _plane_logs(
+            _cosmo_key(_default(cosmo)), float(z_lens), float(z_source)
+        )
+        ln_r200 = (np.log(m200) - ln_rho200) / 3.0
+    else:
+        ln_r200 = np.log(r200_arcsec(m200, z_lens, cosmo))
+        ln_sigma = np.log(sigma_crit(z_lens, z_source, cosmo))
     return (
         math.log(2.0 * math.sqrt(math.pi))
         + gammaln(0.5 * (gamma - 1.0))
@@ -244,6 +250,16 @@ def epl_log_amp_from_m200(m200, gamma, z_lens, z_source, cosmo=None) -> np.ndarr
         - math.log(4.0 * math.pi)
         - (3.0 - gamma) * ln_r200
         - ln_sigma
+    )
+
+
+@functools.lru_cache(maxsize=4096)
+def _plane_logs(key: _CosmoKey, z_lens: float, z_source: float) -> tuple[float, float]:
+    """``(ln(4π/3 · 200 ρ_c(z_lens)), ln Σ_cr(z_lens, z_source))`` in arcsec units: what
+    :func:`epl_log_amp_from_m200` needs of a plane (ln r200 = (ln M200 − the first) / 3)."""
+    rho = float(rho_crit(z_lens, key.cosmo))
+    return math.log(4.0 * math.pi / 3.0 * 200.0 * rho), float(
+        np.log(sigma_crit(z_lens, z_source, key.cosmo))
     )
 
 

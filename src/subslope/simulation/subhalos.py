@@ -28,13 +28,13 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy import stats
 
 from subslope.physics import concentration as _conc
 from subslope.physics import cosmology as _cosmo
 from subslope.physics.instrument import NPIX, PIXEL_SCALE
 from subslope.ragged import counts_to_offsets
-from subslope.simulation.priors import Prior
+from subslope.simulation.precision import SUBHALO_DTYPES, rounded
+from subslope.simulation.priors import Prior, truncated_normal_quantile
 
 __all__ = [
     "SubhaloPopulation",
@@ -46,7 +46,10 @@ __all__ = [
     "place_on_arc",
     "place_everywhere",
     "epl_amplitudes",
+    "sample_concentrations",
+    "nfw_lens_parameters",
     "nfw_parameters",
+    "subhalo_population",
     "sample_subhalos",
 ]
 
@@ -139,7 +142,8 @@ def sample_subhalo_gammas(
     """Per-subhalo slopes γ_i ~ N(γ_b, scatter·γ_b) truncated to ``bounds``.
 
     ``gamma_system`` (B,) are the systems' labels, ``counts`` (B,) their subhalo
-    numbers. Exact: the truncated-normal quantile of ``rng.random`` (scipy ``truncnorm``),
+    numbers. Exact: the truncated-normal quantile of ``rng.random``
+    (:func:`subslope.simulation.priors.truncated_normal_quantile`),
     no rejection. ``scatter = 0`` gives γ_i = γ_b (clipped to the bounds).
     """
     c = _counts(counts)
@@ -157,7 +161,7 @@ def sample_subhalo_gammas(
         return np.clip(mu, lo, hi)
     sigma = scatter * np.abs(mu)
     a, b = (lo - mu) / sigma, (hi - mu) / sigma
-    return np.clip(stats.truncnorm.ppf(u, a, b, loc=mu, scale=sigma), lo, hi)
+    return np.clip(mu + sigma * truncated_normal_quantile(u, a, b), lo, hi)
 
 
 # ---------------------------------------------------------------------------- placement
@@ -267,6 +271,51 @@ def epl_amplitudes(mass, gamma, counts, z_lens, z_source, cosmo=None) -> np.ndar
     return out
 
 
+def sample_concentrations(
+    mass, counts, z_lens, rng: np.random.Generator, multiplier=1.0, scatter_dex: float = 0.1
+) -> np.ndarray:
+    """c200 = ``multiplier`` · c_DM14(M200, z_lens) · 10^N(0, ``scatter_dex``) of a ragged
+    population (``multiplier`` scalar or per system (B,))."""
+    c = _counts(counts)
+    zl = np.broadcast_to(np.asarray(z_lens, dtype=np.float64), c.shape)
+    mass = np.asarray(mass, dtype=np.float64)
+    mult = np.broadcast_to(np.asarray(multiplier, dtype=np.float64), c.shape)
+    if np.any(~np.isfinite(mult) | (mult <= 0)):
+        raise ValueError(f"multiplier = {multiplier!r} must be finite and > 0")
+    if not mass.size:
+        return mass.copy()
+    sys = system_index(c)
+    return mult[sys] * _conc.sample_c200(
+        mass, zl[sys], rng, multiplier=1.0, scatter_dex=scatter_dex
+    )
+
+
+def nfw_lens_parameters(
+    mass, c200, counts, z_lens, z_source, r_sub=None, cosmo=None
+) -> dict[str, np.ndarray]:
+    """NFW ``(R_s, α_Rs)`` (arcsec) of a ragged population from M200 and c200
+    (:func:`subslope.physics.cosmology.nfw_params_from_m200_c`); with ``r_sub`` (flat (N,),
+    projected distance to the lens centre in arcsec, floored at ``R_SUB_FLOOR``) also the
+    tNFW truncation radius ``r_t`` (arcsec) of :mod:`subslope.physics.concentration`."""
+    c, off, zl, zs = _per_system(counts, z_lens, z_source)
+    mass = np.asarray(mass, dtype=np.float64)
+    c200 = np.asarray(c200, dtype=np.float64)
+    r_s, alpha = np.empty_like(mass), np.empty_like(mass)
+    r_t = None if r_sub is None else np.empty_like(mass)
+    for b in np.flatnonzero(c):
+        s = slice(off[b], off[b + 1])
+        r_s[s], alpha[s] = _cosmo.nfw_params_from_m200_c(
+            mass[s], c200[s], float(zl[b]), float(zs[b]), cosmo
+        )
+        if r_t is not None:
+            r = np.maximum(np.asarray(r_sub, dtype=np.float64)[s], R_SUB_FLOOR)
+            r_t[s] = _conc.truncation_radius_arcsec(mass[s], r, float(zl[b]), cosmo)
+    out = {"r_s": r_s, "alpha_rs": alpha}
+    if r_t is not None:
+        out["r_t"] = r_t
+    return out
+
+
 def nfw_parameters(
     mass,
     counts,
@@ -278,40 +327,44 @@ def nfw_parameters(
     r_sub=None,
     cosmo=None,
 ) -> dict[str, np.ndarray]:
-    """NFW (and tNFW) lens parameters of a ragged population.
+    """NFW (and tNFW) lens parameters of a ragged population: ``c200`` drawn by
+    :func:`sample_concentrations`, then :func:`nfw_lens_parameters`. Returns a dict with
+    ``c200``, ``r_s``, ``alpha_rs`` [, ``r_t``]."""
+    c200 = sample_concentrations(mass, counts, z_lens, rng, multiplier, scatter_dex)
+    return {"c200": c200, **nfw_lens_parameters(mass, c200, counts, z_lens, z_source, r_sub, cosmo)}
 
-    c200 = ``multiplier`` · c_DM14(M200, z_lens) · 10^N(0, ``scatter_dex``)
-    (``multiplier`` scalar or per system (B,)); ``(R_s, α_Rs)`` from
-    :func:`subslope.physics.cosmology.nfw_params_from_m200_c`. With ``r_sub`` (flat (N,),
-    projected distance to the lens centre in arcsec, floored at ``R_SUB_FLOOR``) the
-    tNFW truncation radius ``r_t`` (arcsec) of :mod:`subslope.physics.concentration` is added.
-    Returns a dict with ``c200``, ``r_s``, ``alpha_rs`` [, ``r_t``].
+
+def subhalo_population(
+    profile: str, counts, drawn: dict[str, np.ndarray], macro, cosmo=None
+) -> SubhaloPopulation:
+    """The population with its lens parameters derived from the drawn fields.
+
+    ``drawn``: ``mass``, ``x``, ``y`` and ``gamma``, ``e1``, ``e2`` (EPL) or ``c200``
+    (NFW/tNFW), as drawn or as read from a shard; ``macro`` the systems' ``z_lens``,
+    ``z_source`` (and ``lens_x``, ``lens_y`` for tNFW). The simulation and
+    :mod:`subslope.simulation.rerender` both build populations here, so a stored
+    population gives back the renderer's inputs exactly.
     """
-    c, off, zl, zs = _per_system(counts, z_lens, z_source)
-    mass = np.asarray(mass, dtype=np.float64)
-    sys = system_index(c)
-    mult = np.broadcast_to(np.asarray(multiplier, dtype=np.float64), c.shape)
-    if np.any(~np.isfinite(mult) | (mult <= 0)):
-        raise ValueError(f"multiplier = {multiplier!r} must be finite and > 0")
-    c200 = (
-        mult[sys] * _conc.sample_c200(mass, zl[sys], rng, multiplier=1.0, scatter_dex=scatter_dex)
-        if mass.size
-        else mass.copy()
-    )
-    r_s, alpha = np.empty_like(mass), np.empty_like(mass)
-    r_t = None if r_sub is None else np.empty_like(mass)
-    for b in np.flatnonzero(c):
-        s = slice(off[b], off[b + 1])
-        r_s[s], alpha[s] = _cosmo.nfw_params_from_m200_c(
-            mass[s], c200[s], float(zl[b]), float(zs[b]), cosmo
-        )
-        if r_t is not None:
-            r = np.maximum(np.asarray(r_sub, dtype=np.float64)[s], R_SUB_FLOOR)
-            r_t[s] = _conc.truncation_radius_arcsec(mass[s], r, float(zl[b]), cosmo)
-    out = {"c200": c200, "r_s": r_s, "alpha_rs": alpha}
-    if r_t is not None:
-        out["r_t"] = r_t
-    return out
+    c = _counts(counts)
+    drawn = {k: np.asarray(v, dtype=np.float64) for k, v in drawn.items()}
+    zl, zs = macro["z_lens"], macro["z_source"]
+    if profile == "epl":
+        amp = epl_amplitudes(drawn["mass"], drawn["gamma"], c, zl, zs, cosmo)
+        return SubhaloPopulation(profile=profile, counts=c, amp=amp, **drawn)
+    r_sub = None
+    if profile == "tnfw":
+        sys = system_index(c)
+        lx = np.asarray(macro["lens_x"], dtype=np.float64)[sys]
+        ly = np.asarray(macro["lens_y"], dtype=np.float64)[sys]
+        r_sub = np.hypot(drawn["x"] - lx, drawn["y"] - ly)
+    derived = nfw_lens_parameters(drawn["mass"], drawn["c200"], c, zl, zs, r_sub, cosmo)
+    return SubhaloPopulation(profile=profile, counts=c, **drawn, **derived)
+
+
+def _heaviest_first(counts: np.ndarray, drawn: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each system's subhalos in order of decreasing mass (compresses the stored masses)."""
+    order = np.lexsort((-drawn["mass"], system_index(counts)))
+    return {k: v[order] for k, v in drawn.items()}
 
 
 # ---------------------------------------------------------------------------- driver
@@ -340,22 +393,25 @@ def sample_subhalos(
     npix, pixel_scale : int, float
         Field for ``placement='everywhere'`` (and pixel size for ``'arc'``).
 
-    Draw order (fixed): masses, γ_i (EPL), e1, e2 (EPL), positions, c200 scatter.
+    Draw order (fixed): masses, γ_i (EPL), e1, e2 (EPL), positions, c200 scatter. Each
+    drawn field is then rounded to its stored dtype
+    (:data:`subslope.simulation.precision.SUBHALO_DTYPES`), each system's subhalos are
+    ordered by decreasing mass, and the lens parameters are derived from the rounded
+    values (:func:`subhalo_population`).
     """
     spec = scene.subhalos
     n_img = macro["z_lens"].shape[0]
     counts = _counts(macro["n_sub"]) if "n_sub" in macro else np.zeros(n_img, dtype=np.int64)
     n = int(counts.sum())
-    mass = spec.mass.sample(rng, n)
-    pop = {"profile": spec.profile, "counts": counts, "mass": mass}
+    drawn = {"mass": spec.mass.sample(rng, n)}
     if spec.profile == "epl":
         if "gamma_sub" not in macro:
             raise ValueError("macro has no 'gamma_sub' (label γ) but the scene's subhalos are EPL")
-        pop["gamma"] = sample_subhalo_gammas(
+        drawn["gamma"] = sample_subhalo_gammas(
             macro["gamma_sub"], counts, rng, spec.gamma_scatter, spec.gamma_bounds
         )
-        pop["e1"] = spec.e1.sample(rng, n)
-        pop["e2"] = spec.e2.sample(rng, n)
+        drawn["e1"] = spec.e1.sample(rng, n)
+        drawn["e2"] = spec.e2.sample(rng, n)
     if spec.placement == "arc":
         if smooth_images is None:
             if n:
@@ -367,28 +423,18 @@ def sample_subhalos(
             x, y = place_on_arc(smooth_images, counts, rng, pixel_scale, spec.threshold_fraction)
     else:
         x, y = place_everywhere(counts, rng, npix, pixel_scale)
-    pop["x"], pop["y"] = x, y
-    if spec.profile == "epl":
-        pop["amp"] = epl_amplitudes(
-            mass, pop["gamma"], counts, macro["z_lens"], macro["z_source"], cosmo
+    drawn["x"], drawn["y"] = x, y
+    if spec.profile != "epl":
+        drawn["c200"] = sample_concentrations(
+            drawn["mass"],
+            counts,
+            macro["z_lens"],
+            rng,
+            macro.get("c_multiplier", np.ones(n_img)),
+            scene.concentration.scatter_dex,
         )
-    else:
-        sys = system_index(counts)
-        r_sub = None
-        if spec.profile == "tnfw":
-            r_sub = np.hypot(x - macro["lens_x"][sys], y - macro["lens_y"][sys])
-        mult = macro.get("c_multiplier", np.ones(n_img))
-        pop.update(
-            nfw_parameters(
-                mass,
-                counts,
-                macro["z_lens"],
-                macro["z_source"],
-                rng,
-                mult,
-                scene.concentration.scatter_dex,
-                r_sub,
-                cosmo,
-            )
-        )
-    return SubhaloPopulation(**pop)
+    bounds = {"gamma": spec.gamma_bounds}
+    drawn = {
+        k: rounded(v, SUBHALO_DTYPES[k], f"subhalos.{k}", bounds.get(k)) for k, v in drawn.items()
+    }
+    return subhalo_population(spec.profile, counts, _heaviest_first(counts, drawn), macro, cosmo)

@@ -46,10 +46,15 @@ def shard_path(
 
 
 def shard_jobs(config: Mapping[str, Any]) -> list[dict[str, Any]]:
-    """One entry ``{scene, shard, multiplier, path}`` per shard the config asks for."""
+    """One entry ``{scene, shard, multiplier, path}`` per shard the config asks for (none
+    of the train scene when the estimator trains on a stream,
+    :func:`subslope.config.shard_scenes`)."""
     config = _config.validate(config)
     jobs = []
+    with_shards = _config.shard_scenes(config)
     for name, counts in config["simulation"]["scenes"].items():
+        if name not in with_shards:
+            continue
         scene, _ = resolved_scene(config, name)
         n_img = int(counts["images_per_shard"])
         if n_img % scene.images_per_set:

@@ -22,6 +22,7 @@ from subslope.simulation.shard import simulate_shard
 __all__ = [
     "simulate_shard",
     "simulate_shard_job",
+    "runnable_config",
     "shard_cache_key",
     "compute_whitening",
     "plot_scene_examples_from_shard",
@@ -49,6 +50,19 @@ def shard_cache_key(
     )
 
 
+def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str, Any]:
+    """The config a job of ``scene`` simulates with: its resolved sections ``job``
+    (:func:`subslope.stages.plan.shard_job_config`) plus, from the workflow's config ``run``,
+    what changes no image: ``data`` (where the resources live) and the run-only render
+    keys; sets the compile cache (:func:`subslope.render.kernels.use_compile_cache`)."""
+    config = copy.deepcopy(dict(job))
+    config["data"] = copy.deepcopy(run["data"])
+    render = run["simulation"]["render"]
+    config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
+    use_compile_cache(render.get("compile_cache"))
+    return config
+
+
 def simulate_shard_job(
     job: Mapping[str, Any],
     run: Mapping[str, Any],
@@ -61,15 +75,9 @@ def simulate_shard_job(
     """One shard job of the workflow: ``job`` is its resolved configuration
     (:func:`subslope.stages.plan.shard_job_config`, the rule's params); ``run`` the
     workflow's config, from which only the values that must not rerun a finished shard
-    are taken (``data``: where the resources live; ``simulation.render.batch_size``,
-    ``device`` and ``compile_cache``, :func:`subslope.render.kernels.use_compile_cache`;
-    ``simulation.shard_cache``: a shard of the same key there is taken
-    instead of simulated, and a new one is put there)."""
-    config = copy.deepcopy(dict(job))
-    config["data"] = copy.deepcopy(run["data"])
-    render = run["simulation"]["render"]
-    config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
-    use_compile_cache(render.get("compile_cache"))
+    are taken (:func:`runnable_config`; ``simulation.shard_cache``: a shard of the same
+    key there is taken instead of simulated, and a new one is put there)."""
+    config = runnable_config(job, run)
     cache = run["simulation"].get("shard_cache")
     key = shard_cache_key(job, scene, shard, multiplier) if cache else ""
     if cache and take_from_cache(cache, scene, key, out_path):

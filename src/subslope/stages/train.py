@@ -11,10 +11,18 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from subslope.config import STREAMED_SCENE
 from subslope.nre.training_config import WORKFLOW_KEYS, config_hash, resolve_config
 from subslope.stages.plan import derived_seed
 
-__all__ = ["training_section", "checkpoint_key", "data_fingerprint", "run_training"]
+__all__ = [
+    "training_section",
+    "checkpoint_key",
+    "data_fingerprint",
+    "SceneStream",
+    "training_stream",
+    "run_training",
+]
 
 
 def training_section(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -56,11 +64,15 @@ def checkpoint_key(
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def data_fingerprint(train_shards: Sequence, val_shards: Sequence, whitening) -> str:
-    """12 hex digits of the SHA-256 of every training and validation shard's bytes and of
-    the whitening JSON. Refuses a whitening file whose recorded shard checksums are not
-    those of ``train_shards`` now (it was computed from other images); a shard that
-    changed because it is corrupt is named as such (:func:`subslope.io.shards.verify_shard`)."""
+def data_fingerprint(
+    train_shards: Sequence, val_shards: Sequence, whitening, stream: Mapping | None = None
+) -> str:
+    """12 hex digits of the SHA-256 of every training and validation shard's bytes, of
+    the whitening JSON and of the streamed scene's simulation sections (``stream``: the
+    runnable config of a streamed run, :func:`training_stream`). Refuses a whitening file
+    whose recorded shard checksums are not those of ``train_shards`` now (it was computed
+    from other images); a shard that changed because it is corrupt is named as such
+    (:func:`subslope.io.shards.verify_shard`)."""
     from subslope.io.atomic import read_json
     from subslope.io.shards import file_sha256, verify_shard
 
@@ -80,7 +92,69 @@ def data_fingerprint(train_shards: Sequence, val_shards: Sequence, whitening) ->
                 f"{stale}; rerun its rule (snakemake -R compute_whitening) before training"
             )
         sums["whitening"] = file_sha256(whitening)
+    if stream is not None:
+        from subslope.config import config_hash as sections_hash
+        from subslope.simulation.resolve import simulation_sections
+
+        sums["stream"] = sections_hash(simulation_sections(stream, STREAMED_SCENE))
     return hashlib.sha256(json.dumps(sums, sort_keys=True).encode()).hexdigest()[:12]
+
+
+class SceneStream:
+    """The simulator of a streamed training run (:mod:`subslope.nre.stream`): images of
+    ``scene`` exactly as its shards would hold them, from the runnable config ``config``
+    (:func:`subslope.stages.simulate.runnable_config`). Picklable, so that data-loader
+    workers (forked or spawned) each simulate their own batches."""
+
+    def __init__(self, config: Mapping[str, Any], scene: str = STREAMED_SCENE):
+        self.config, self.scene = copy.deepcopy(dict(config)), scene
+
+    def images(self, n: int, seed_sequence):
+        """``n`` noisy images and their parameters, as
+        ``subslope.simulation.shard.simulate_images`` gives them."""
+        from subslope.simulation.shard import simulate_images
+
+        out = simulate_images(self.config, self.scene, n, seed_sequence)
+        return out["images"], out["params"]
+
+    def labels(self, n: int, seed_sequence):
+        """``n`` labels γ from the scene's macro prior (no images)."""
+        import numpy as np
+
+        from subslope.simulation.macro import sample_macro
+        from subslope.simulation.resolve import resolved_scene
+
+        scene, _ = resolved_scene(self.config, self.scene)
+        return sample_macro(scene, n, np.random.default_rng(seed_sequence))["gamma_sub"]
+
+
+def training_stream(training: Mapping[str, Any], stream: Mapping[str, Any]):
+    """The :class:`subslope.nre.stream.StreamBatches` of a streamed run: an epoch of the
+    streamed scene's ``n_shards × images_per_shard`` images (whole batches), seeded by the
+    training seed; workers start by ``spawn`` when the images are rendered on CUDA."""
+    from subslope.devices import pick_device
+    from subslope.nre.stream import StreamBatches
+
+    cfg = resolve_config(training)
+    counts = stream["simulation"]["scenes"][STREAMED_SCENE]
+    n_batches = int(counts["n_shards"]) * int(counts["images_per_shard"]) // cfg["batch_size"]
+    if n_batches < 1:
+        raise ValueError(
+            f"simulation.scenes.{STREAMED_SCENE} holds fewer images than one batch of "
+            f"training.batch_size = {cfg['batch_size']}"
+        )
+    render_device = pick_device(
+        stream["simulation"]["render"].get("device", "auto"), key="simulation.render.device"
+    )
+    return StreamBatches(
+        SceneStream(stream),
+        cfg["batch_size"],
+        n_batches,
+        seed=int(cfg["seed"]),
+        pixel_scale=cfg["pixel_scale"],
+        mask_factor=cfg["mask_factor"],
+        multiprocessing_context="spawn" if render_device.type == "cuda" else None,
+    )
 
 
 def run_training(
@@ -92,9 +166,12 @@ def run_training(
     ckpt_dir,
     *,
     device: str = "auto",
+    stream: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train (resuming from ``ckpt_dir`` when possible); ``out_dir`` gets model.pt +
-    training_log.csv.
+    training_log.csv. ``stream``: the runnable config of the streamed scene
+    (``training.data: stream``; ``train_shards`` is then empty) — the training images are
+    simulated while training (:func:`training_stream`).
 
     The checkpoints live in ``ckpt_dir/data-<fingerprint>`` (:func:`data_fingerprint`):
     shards whose content changed under the same paths and config start a fresh run
@@ -102,10 +179,10 @@ def run_training(
     from subslope.nre.train import train
 
     dev = None if device in (None, "auto") else device
-    ckpt = Path(ckpt_dir) / f"data-{data_fingerprint(train_shards, val_shards, whitening)}"
-    summary = train(
-        training, list(train_shards), list(val_shards), whitening, out_dir, ckpt, device=dev
-    )
+    key = data_fingerprint(train_shards, val_shards, whitening, stream)
+    ckpt = Path(ckpt_dir) / f"data-{key}"
+    data = training_stream(training, stream) if stream is not None else list(train_shards)
+    summary = train(training, data, list(val_shards), whitening, out_dir, ckpt, device=dev)
     if not summary["finished"]:
         raise RuntimeError(
             f"training stopped before the end ({summary}); run again to resume from {ckpt_dir}"
