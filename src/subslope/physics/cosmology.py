@@ -124,7 +124,17 @@ def _da12(cosmo, z1, z2):
 def _dA_cached(key: _CosmoKey, z1: float, z2: float) -> float:
     if z1 == 0.0:
         return float(key.cosmo.angular_diameter_distance(z2).to_value(u.Mpc))
+    if getattr(key.cosmo, "Ok0", None) == 0:
+        # flat: D_A(z1, z2) = (D_C(z2) - D_C(z1)) / (1 + z2), from the distances of
+        # single redshifts (cached; a campaign has few plane redshifts and one source
+        # redshift per image) instead of one integral per pair of redshifts
+        return (_dC_cached(key, z2) - _dC_cached(key, z1)) / (1.0 + z2)
     return float(_da12(key.cosmo, z1, z2))
+
+
+@functools.lru_cache(maxsize=4096)
+def _dC_cached(key: _CosmoKey, z: float) -> float:
+    return float(key.cosmo.comoving_distance(z).to_value(u.Mpc))
 
 
 def angular_diameter_distance_z1z2(z1, z2, cosmo=None) -> np.ndarray:
