@@ -158,3 +158,18 @@ def test_a_streamed_campaign_plans_no_training_shards(stream_config, workdir, da
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "results/simulate_shard/train/" not in proc.stdout
     assert "train_estimator" in proc.stdout and "compute_whitening" in proc.stdout
+
+
+def test_cli_train_takes_no_shards_with_a_stream(tmp_path, capsys):
+    from subslope.cli import main
+
+    cfg = tmp_path / "stream.yaml"
+    cfg.write_text(
+        f"base: {REPO_ROOT / 'config' / 'tiny.yaml'}\n"
+        "training: {data: stream}\ndomain: {scene: validation}\n"
+    )
+    common = ["--val", "v.h5", "--whitening", "w.json", "--out", str(tmp_path / "o")]
+    assert main(["train", "--config", str(cfg), "--train", "t.h5", *common]) == 1
+    assert "training.data is 'stream'" in capsys.readouterr().err
+    assert main(["train", "--config", str(REPO_ROOT / "config" / "tiny.yaml"), *common]) == 1
+    assert "--train: give the training shard files" in capsys.readouterr().err

@@ -166,15 +166,35 @@ def _train(args: argparse.Namespace) -> int:
     if config is None:
         return 1
     ckpt = args.ckpt or str(Path(args.out) / "checkpoints")
+    streamed = config["training"]["data"] == "stream"
+    if streamed == bool(args.train):
+        print(
+            "error: "
+            + (
+                "training.data is 'stream': the training images are simulated, give no --train"
+                if streamed
+                else "--train: give the training shard files (or set training.data: stream)"
+            ),
+            file=sys.stderr,
+        )
+        return 1
     try:
+        stream = None
+        if streamed:
+            from subslope.config import STREAMED_SCENE
+            from subslope.stages.plan import shard_job_config
+            from subslope.stages.simulate import runnable_config
+
+            stream = runnable_config(shard_job_config(config, STREAMED_SCENE), config)
         summary = run_training(
             training_section(config),
-            args.train,
+            args.train or [],
             args.val,
             args.whitening,
             args.out,
             ckpt,
             device=config["training"]["device"],
+            stream=stream,
         )
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -309,7 +329,12 @@ def build_parser() -> argparse.ArgumentParser:
         "train", help="train (or resume training) the likelihood-ratio estimator"
     )
     p.add_argument("--config", required=True, help="workflow config file (its training section)")
-    p.add_argument("--train", required=True, nargs="+", help="training shard files")
+    p.add_argument(
+        "--train",
+        nargs="*",
+        default=[],
+        help="training shard files (none with training.data: stream)",
+    )
     p.add_argument("--val", required=True, nargs="+", help="validation shard files")
     p.add_argument("--whitening", required=True, help="whitening JSON (rule compute_whitening)")
     p.add_argument("--out", required=True, help="folder for model.pt and training_log.csv")
