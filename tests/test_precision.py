@@ -70,3 +70,6 @@ def test_rounded_image_is_round_half_even_to_16_mantissa_bits():
     np.testing.assert_array_equal(rounded_image(x, 23), x)
     with pytest.raises(ValueError, match="bits"):
         rounded_image(x, 0)
+    for bad in (np.nan, np.inf, np.float32(3.4028235e38)):  # the last rounds up to inf
+        with pytest.raises(ValueError, match="non-finite"):
+            rounded_image(np.array([1.0, bad], dtype=np.float32))
