@@ -323,3 +323,46 @@ def test_expected_counts_bad_inputs(host):
         los.expected_counts(Z_L, Z_S, host, -1.0)
     with pytest.raises(ValueError, match="host_m200"):
         los.expected_counts(Z_L, Z_S, 0.0, 1.0)
+
+
+def test_batched_expectations_equal_one_system_at_a_time():
+    """Slices, volumes and two-halo boosts of many systems evaluated together equal those
+    of each system alone, bit for bit; per-system generators give each system alone."""
+    zl = np.array([0.2, 0.35, 0.5])
+    zs = np.array([0.6, 1.4, 0.9])
+    hosts = np.array([2e12, 5e12, 1e13])
+    table = los_model.slice_table(zl, zs)
+    for b in range(3):
+        k = table.n[b]
+        assert k == los_model.slice_redshifts(zs[b])[0].size
+        assert np.array_equal(table.volume[b, :k], los_model.slice_volumes(zl[b], zs[b]))
+        z_lo = los_model.slice_redshifts(zs[b])[0]
+        boosts = los_model.two_halo_boosts(table.z_lo, table.n, zl, hosts)
+        assert np.array_equal(boosts[b, :k], los_model.two_halo_boost(z_lo, zl[b], hosts[b]))
+        assert np.all(boosts[b, k:] == 1.0)
+    assert np.array_equal(
+        los_model.host_bias(hosts, zl), [los_model.host_bias(h, z) for h, z in zip(hosts, zl)]
+    )
+    seeds = np.random.SeedSequence(3).spawn(3)
+    batch = los.sample_los_batch(zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(s) for s in seeds])
+    for b in range(3):
+        one = los.sample_los(zl[b], zs[b], 1.1, 2.0, 1.0, np.random.default_rng(seeds[b]))
+        got = batch.system(b)
+        assert all(
+            np.array_equal(getattr(got, f), getattr(one, f)) for f in ("z", "x", "y", "m200")
+        )
+    with pytest.raises(ValueError, match="sequence of 3"):
+        los.sample_los_batch(zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(0)])
+
+
+def test_plane_logs_of_an_array_equal_the_pairs_one_at_a_time():
+    zl = np.array([0.2, 0.3, 0.2, 0.45])
+    zs = np.array([0.6, 0.9, 0.6, 1.2])
+    rho, sig = cosmology.plane_logs(zl, zs)
+    for i in range(4):
+        assert (rho[i], sig[i]) == cosmology.plane_logs(float(zl[i]), float(zs[i]))
+    m, g = np.array([1e8, 3e9, 2e7, 5e8]), np.array([1.5, 2.0, 2.5, 1.9])
+    assert np.array_equal(
+        cosmology.epl_log_amp_from_logs(m, g, rho, sig),
+        cosmology.epl_log_amp_from_m200(m, g, zl, zs),
+    )

@@ -234,3 +234,30 @@ def test_sample_subhalos_without_subhalos(rng):
     macro = sample_macro(scene, 5, rng)
     pop = sh.sample_subhalos(scene, macro, rng)
     assert np.array_equal(pop.counts, np.zeros(5)) and pop.mass.size == 0
+
+
+def test_per_system_generators_give_each_system_alone(rng):
+    """One Generator per system: the batch equals each system sampled alone from its own."""
+    scene = scenes_from_config({})["test_epl"]
+    macro = {k: v[:4] for k, v in sample_macro(scene, 13, rng).items()}
+    imgs = np.stack(
+        [
+            ring_image(t, cx=x, cy=y)
+            for t, x, y in zip(macro["theta_e"], macro["lens_x"], macro["lens_y"])
+        ]
+    )
+    seeds = np.random.SeedSequence(11).spawn(4)
+    batch = sh.sample_subhalos(scene, macro, [np.random.default_rng(s) for s in seeds], imgs)
+    alone = [
+        sh.sample_subhalos(
+            scene,
+            {k: v[b : b + 1] for k, v in macro.items()},
+            np.random.default_rng(seeds[b]),
+            imgs[b : b + 1],
+        )
+        for b in range(4)
+    ]
+    for k, v in batch.arrays().items():
+        assert np.array_equal(v, np.concatenate([a.arrays()[k] for a in alone])), k
+    with pytest.raises(ValueError, match="3 generators for 4 systems"):
+        sh.sample_subhalos(scene, macro, [np.random.default_rng(s) for s in seeds[:3]], imgs)

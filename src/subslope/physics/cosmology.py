@@ -43,7 +43,9 @@ __all__ = [
     "sigma_crit",
     "rho_crit",
     "r200_arcsec",
+    "plane_logs",
     "epl_log_amp_from_m200",
+    "epl_log_amp_from_logs",
     "epl_amp_from_m200",
     "nfw_params_from_m200_c",
     "m200_c_from_nfw_params",
@@ -237,21 +239,22 @@ def epl_log_amp_from_m200(m200, gamma, z_lens, z_source, cosmo=None) -> np.ndarr
     The factors (3 - gamma) cancel; everything is summed in logs (``gammaln``), so the
     result is finite for gamma -> 1 (A ~ 1e-2 at gamma = 1.01 and M200 = 1e8 M_sun,
     whereas theta_E = A^(1/(gamma-1)) ~ 1e-199 arcsec). *Unit: ln(arcsec^(gamma-1)).*
-    Vectorised over ``m200`` and ``gamma`` (numpy broadcasting).
+    Vectorised over ``m200``, ``gamma`` and the redshifts (numpy broadcasting; the plane
+    terms of each distinct redshift pair from :func:`plane_logs`).
     """
+    return epl_log_amp_from_logs(m200, gamma, *plane_logs(z_lens, z_source, cosmo))
+
+
+def epl_log_amp_from_logs(m200, gamma, ln_rho200, ln_sigma) -> np.ndarray:
+    """:func:`epl_log_amp_from_m200` from the plane terms of :func:`plane_logs`
+    (``ln_rho200``, ``ln_sigma``, broadcast against ``m200`` and ``gamma``).
+    *Unit: ln(arcsec^(gamma-1)).*"""
     gamma = np.asarray(gamma, dtype=np.float64)
     bad = ~np.isfinite(gamma) | (gamma <= 1.0) | (gamma >= 3.0)
     if np.any(bad):
         raise ValueError(f"gamma must lie in (1, 3); got {gamma[bad].ravel()[:3]}")
     m200 = _check_positive("m200", m200)
-    if np.ndim(z_lens) == 0 and np.ndim(z_source) == 0:  # one plane: its logs cached
-        ln_rho200, ln_sigma = _plane_logs(
-            _cosmo_key(_default(cosmo)), float(z_lens), float(z_source)
-        )
-        ln_r200 = (np.log(m200) - ln_rho200) / 3.0
-    else:
-        ln_r200 = np.log(r200_arcsec(m200, z_lens, cosmo))
-        ln_sigma = np.log(sigma_crit(z_lens, z_source, cosmo))
+    ln_r200 = (np.log(m200) - ln_rho200) / 3.0
     return (
         math.log(2.0 * math.sqrt(math.pi))
         + gammaln(0.5 * (gamma - 1.0))
@@ -263,10 +266,33 @@ def epl_log_amp_from_m200(m200, gamma, z_lens, z_source, cosmo=None) -> np.ndarr
     )
 
 
-@functools.lru_cache(maxsize=4096)
+def plane_logs(z_lens, z_source, cosmo=None):
+    r"""``(ln(4π/3 · 200 ρ_c(z_lens)), ln Σ_cr(z_lens, z_source))`` in arcsec units (M☉ /
+    arcsec³ and M☉ / arcsec²): what :func:`epl_log_amp_from_m200` needs of a lens plane
+    (ln r200 = (ln M200 − the first) / 3).
+
+    Scalars or arrays that broadcast together; each distinct (z_lens, z_source) pair is
+    evaluated once at scalar redshifts and cached, so an array of pairs gives exactly the
+    values of the pairs one at a time.
+    """
+    key = _cosmo_key(_default(cosmo))
+    if np.ndim(z_lens) == 0 and np.ndim(z_source) == 0:
+        return _plane_logs(key, float(z_lens), float(z_source))
+    zl, zs = np.broadcast_arrays(
+        np.asarray(z_lens, dtype=np.float64), np.asarray(z_source, dtype=np.float64)
+    )
+    if zl.size == 0:
+        return np.zeros(zl.shape), np.zeros(zl.shape)
+    pairs, inverse = np.unique(
+        np.stack([zl.ravel(), zs.ravel()], axis=1), axis=0, return_inverse=True
+    )
+    logs = np.array([_plane_logs(key, float(a), float(b)) for a, b in pairs])
+    inverse = inverse.ravel()
+    return logs[inverse, 0].reshape(zl.shape), logs[inverse, 1].reshape(zl.shape)
+
+
+@functools.lru_cache(maxsize=65536)
 def _plane_logs(key: _CosmoKey, z_lens: float, z_source: float) -> tuple[float, float]:
-    """``(ln(4π/3 · 200 ρ_c(z_lens)), ln Σ_cr(z_lens, z_source))`` in arcsec units: what
-    :func:`epl_log_amp_from_m200` needs of a plane (ln r200 = (ln M200 − the first) / 3)."""
     rho = float(rho_crit(z_lens, key.cosmo))
     return math.log(4.0 * math.pi / 3.0 * 200.0 * rho), float(
         np.log(sigma_crit(z_lens, z_source, key.cosmo))

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from subslope.ragged import counts_to_starts
+from subslope.ragged import counts_to_offsets, counts_to_starts
 from subslope.simulation.los_model import (
     DEFAULT_CONFIG,
     LosConfig,
@@ -41,11 +41,9 @@ from subslope.simulation.los_model import (
     _check_positive,
     _check_redshifts,
     _mass_tables,
-    cone_radius_arcsec,
     host_m200_from_epl,
-    slice_redshifts,
-    slice_volumes,
-    two_halo_boost,
+    slice_table,
+    two_halo_boosts,
 )
 
 __all__ = [
@@ -176,34 +174,45 @@ def expected_counts(
     _check_redshifts(z_lens, z_source)
     _check_delta(delta_los)
     _check_positive("host_m200", host_m200)
-    z_lo, z_mid = slice_redshifts(z_source, config.dz, config.z_min)
-    if z_lo.size == 0:
-        return np.zeros(0)
+    table = slice_table(z_lens, z_source, config)
+    lam = _expected_counts(table, [z_lens], [host_m200], [delta_los], config)
+    return lam[0, : table.n[0]]
+
+
+def _expected_counts(table, z_lens, host_m200, delta_los, config: LosConfig) -> np.ndarray:
+    """(B, K) expected counts of the systems of ``table`` (0 past a system's slices)."""
+    if table.z_mid.size == 0:
+        return np.zeros((len(z_lens), 0))
     n_int = _mass_tables(
-        tuple(z_mid.tolist()), float(config.m_min), float(config.m_max), int(config.n_mass_grid)
+        tuple(table.z_mid.tolist()),
+        float(config.m_min),
+        float(config.m_max),
+        int(config.n_mass_grid),
     )[0]
-    counts = delta_los * n_int * slice_volumes(z_lens, z_source, config)
+    own = np.arange(table.z_mid.size) < table.n[:, None]
+    counts = np.asarray(delta_los, dtype=np.float64)[:, None] * n_int * table.volume
     if config.two_halo:
-        counts = counts * two_halo_boost(
-            z_lo, z_lens, host_m200, config.dz, config.r_min, config.r_max, config.n_two_halo_quad
+        counts = counts * two_halo_boosts(
+            table.z_lo,
+            table.n,
+            z_lens,
+            host_m200,
+            config.dz,
+            config.r_min,
+            config.r_max,
+            config.n_two_halo_quad,
         )
-    return counts
+    return np.where(own, counts, 0.0)
 
 
-def _draw(
-    lam: np.ndarray,
-    z_mid: np.ndarray,
-    radius: np.ndarray,
-    config: LosConfig,
-    rng: np.random.Generator,
-) -> LosHalos:
-    """Poisson counts per slice, inverse-CDF masses, uniform disc positions."""
+def _draw(lam: np.ndarray, z_mid: np.ndarray, radius: np.ndarray, tables, rng) -> LosHalos:
+    """Poisson counts per slice, inverse-CDF masses, uniform disc positions; ``tables``
+    (cdf, ln M, mass range) of :func:`subslope.simulation.los_model._mass_tables` for
+    ``z_mid`` or any grid it is a prefix of."""
+    cdf, ln_m, (m_min, m_max) = tables
     n_per_slice = rng.poisson(lam)
     slice_idx = np.repeat(np.arange(lam.size), n_per_slice)
     n = slice_idx.size
-    _, cdf, ln_m = _mass_tables(
-        tuple(z_mid.tolist()), float(config.m_min), float(config.m_max), int(config.n_mass_grid)
-    )
     # inverse CDF: locate u in its own slice's row of the offset-stacked table
     # and interpolate linearly in ln M between the bracketing grid points
     q = rng.random(n) + 2.0 * slice_idx
@@ -212,7 +221,7 @@ def _draw(
     width = cdf[hi] - cdf[lo]
     frac = np.where(width > 0, (q - cdf[lo]) / np.where(width > 0, width, 1.0), 0.0)
     m200 = np.exp(ln_m[lo] + np.clip(frac, 0.0, 1.0) * (ln_m[hi] - ln_m[lo]))
-    np.clip(m200, config.m_min, config.m_max, out=m200)
+    np.clip(m200, m_min, m_max, out=m200)
     r = radius[slice_idx] * np.sqrt(rng.random(n))
     phi = 2.0 * np.pi * rng.random(n)
     return LosHalos(z=z_mid[slice_idx], x=r * np.cos(phi), y=r * np.sin(phi), m200=m200)
@@ -237,15 +246,19 @@ def sample_los(
     """
     if not isinstance(rng, np.random.Generator):
         raise ValueError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-    _check_redshifts(z_lens, z_source)
-    _check_delta(delta_los)
-    host = float(host_m200_from_epl(theta_e, gamma_ml, z_lens, z_source))
-    lam = expected_counts(z_lens, z_source, host, delta_los, config)
-    _, z_mid = slice_redshifts(z_source, config.dz, config.z_min)
-    radius = cone_radius_arcsec(
-        z_mid, z_lens, z_source, config.cone_diameter, config.opening_factor
-    )
-    return _draw(lam, z_mid, radius, config, rng)
+    return sample_los_batch(z_lens, z_source, theta_e, gamma_ml, delta_los, rng, config).system(0)
+
+
+def _generators(rng, n: int) -> list:
+    """``n`` generators: ``rng`` repeated, or the sequence ``rng`` (one per system)."""
+    if isinstance(rng, np.random.Generator):
+        return [rng] * n
+    rngs = list(rng)
+    if len(rngs) != n or not all(isinstance(r, np.random.Generator) for r in rngs):
+        raise ValueError(
+            f"rng must be a numpy.random.Generator or a sequence of {n} of them (one per system)"
+        )
+    return rngs
 
 
 def sample_los_batch(
@@ -254,24 +267,44 @@ def sample_los_batch(
     theta_e,
     gamma_ml,
     delta_los,
-    rng: np.random.Generator,
+    rng,
     config: LosConfig = DEFAULT_CONFIG,
 ) -> LosBatch:
     """Draw LoS halos for many systems (1-D parameter arrays, broadcast together).
 
-    Systems are drawn in order with the same generator, so the result equals
-    successive :func:`sample_los` calls. Returns a ragged :class:`LosBatch`.
+    ``rng``: one Generator, from which the systems are drawn in order (the result equals
+    successive :func:`sample_los` calls), or a sequence of one Generator per system. The
+    slices, cone and expected counts of all systems are evaluated together. Returns a
+    ragged :class:`LosBatch`.
     """
     params = (z_lens, z_source, theta_e, gamma_ml, delta_los)
     arrays = np.broadcast_arrays(*(np.atleast_1d(np.asarray(a, np.float64)) for a in params))
     if arrays[0].ndim != 1:
         raise ValueError(f"system parameters must be scalars or 1-D, got shape {arrays[0].shape}")
-    parts = [sample_los(*system, rng, config) for system in zip(*arrays)]
+    zl, zs, theta_e, gamma_ml, delta = arrays
+    rngs = _generators(rng, zl.size)
+    if not zl.size:
+        empty = np.zeros(0)
+        return LosBatch(z=empty, x=empty, y=empty, m200=empty, counts=np.zeros(0, np.int64))
+    _check_redshifts(zl, zs)
+    _check_delta(delta)
+    host = host_m200_from_epl(theta_e, gamma_ml, zl, zs)
+    table = slice_table(zl, zs, config)
+    lam = _expected_counts(table, zl, host, delta, config)
+    _, cdf, ln_m = _mass_tables(
+        tuple(table.z_mid.tolist()),
+        float(config.m_min),
+        float(config.m_max),
+        int(config.n_mass_grid),
+    )
+    tables = (cdf, ln_m, (config.m_min, config.m_max))
+    parts = [
+        _draw(lam[b, :k], table.z_mid[:k], table.radius[b, :k], tables, rngs[b])
+        for b, k in enumerate(table.n)
+    ]
     counts = np.array([len(p) for p in parts], dtype=np.int64)
 
     def cat(name: str) -> np.ndarray:
-        if not parts:
-            return np.zeros(0)
         return np.concatenate([getattr(p, name) for p in parts])
 
     return LosBatch(z=cat("z"), x=cat("x"), y=cat("y"), m200=cat("m200"), counts=counts)
@@ -294,9 +327,19 @@ def _group_planes(z: np.ndarray, z_source_halo: np.ndarray):
     ]
 
 
-def los_profiles(
-    batch: LosBatch, scene, macro: dict, rng: np.random.Generator, *, cosmo=None
-) -> LosPopulation:
+def _profile_draws(rng, counts: np.ndarray, draw) -> dict[str, np.ndarray]:
+    """``draw(generator, systems)`` → fields of the halos of the slice ``systems``: of all
+    systems from one Generator, or of each system from its own, concatenated."""
+    if isinstance(rng, np.random.Generator):
+        return draw(rng, slice(0, counts.size))
+    rngs = _generators(rng, counts.size)
+    parts = [draw(rngs[b], slice(b, b + 1)) for b in range(counts.size)]
+    if not parts:
+        return draw(np.random.default_rng(0), slice(0, 0))  # no systems: nothing drawn
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def los_profiles(batch: LosBatch, scene, macro: dict, rng, *, cosmo=None) -> LosPopulation:
     """Attach lens-profile parameters to sampled LoS halos (a rendering-ready population).
 
     Parameters
@@ -310,18 +353,18 @@ def los_profiles(
     macro : dict
         Per-system arrays of length ``B``: ``z_source``; ``gamma_sub`` (EPL: the
         system's label γ); ``c_multiplier`` (NFW with ``concentration.apply_to_los``).
-    rng : numpy.random.Generator
-        Draw order: EPL γ_i, e1, e2; NFW the c200 scatter.
+    rng : numpy.random.Generator, or a sequence of one Generator per system
+        Draw order: EPL γ_i, e1, e2; NFW the c200 scatter (all systems field by field from
+        one Generator; each system's fields from its own).
 
     EPL: γ_i ~ N(γ, f·γ) truncated to the γ_i bounds (f = ``gamma_scatter``), amplitude
     θ_E^(γ_i−1) = :func:`subslope.physics.cosmology.epl_amp_from_m200` (M200, γ_i, z_halo,
     z_source): lens-plane units of the halo's own plane. NFW: c200 = c_DM14(M200, z_halo)
     · 10^N(0, scatter_dex) (× the multiplier a only if ``apply_to_los``), then
     ``(R_s, α_Rs)`` from :func:`subslope.physics.cosmology.nfw_params_from_m200_c` at (z_halo,
-    z_source). Conversions are grouped by (plane, z_source) so that the distances are
-    evaluated at scalar redshifts (cached).
+    z_source), grouped by (plane, z_source) so that the distances are evaluated at scalar
+    redshifts (cached).
     """
-    from subslope.physics import concentration as _conc
     from subslope.physics import cosmology as _cosmology
     from subslope.simulation.subhalos import sample_subhalo_gammas
 
@@ -329,7 +372,6 @@ def los_profiles(
     n_sys = counts.size
     z_source = np.broadcast_to(np.asarray(macro["z_source"], dtype=np.float64), (n_sys,))
     sys = np.repeat(np.arange(n_sys), counts)
-    n = int(counts.sum())
     profile = scene.los.profile
     out = dict(
         profile=profile,
@@ -339,34 +381,56 @@ def los_profiles(
         y=np.asarray(batch.y, np.float64),
         m200=np.asarray(batch.m200, np.float64),
     )
-    groups = _group_planes(out["z"], z_source[sys])
+    off = counts_to_offsets(counts)
     if profile == "epl":
         if "gamma_sub" not in macro:
             raise ValueError("macro has no 'gamma_sub' (label γ) but the scene's LoS halos are EPL")
         spec = scene.subhalos
         gamma_sys = np.broadcast_to(np.asarray(macro["gamma_sub"], dtype=np.float64), (n_sys,))
-        gamma = sample_subhalo_gammas(gamma_sys, counts, rng, spec.gamma_scatter, spec.gamma_bounds)
-        e1, e2 = spec.e1.sample(rng, n), spec.e2.sample(rng, n)
-        amp = np.empty(n)
-        for z_h, z_s, idx in groups:
-            amp[idx] = _cosmology.epl_amp_from_m200(out["m200"][idx], gamma[idx], z_h, z_s, cosmo)
-        out.update(amp=amp, gamma=gamma, e1=e1, e2=e2)
-    elif profile == "nfw":
-        conc = scene.concentration
-        mult = np.ones(n_sys)
-        if conc.apply_to_los and "c_multiplier" in macro:
-            mult = np.broadcast_to(np.asarray(macro["c_multiplier"], dtype=np.float64), (n_sys,))
-        c200 = (
-            mult[sys] * _conc.sample_c200(out["m200"], out["z"], rng, 1.0, conc.scatter_dex)
-            if n
-            else np.zeros(0)
-        )
-        r_s, alpha = np.empty(n), np.empty(n)
-        for z_h, z_s, idx in groups:
-            r_s[idx], alpha[idx] = _cosmology.nfw_params_from_m200_c(
-                out["m200"][idx], c200[idx], z_h, z_s, cosmo
+
+        def draw(r: np.random.Generator, s: slice) -> dict[str, np.ndarray]:
+            n = int(off[s.stop] - off[s.start])
+            gamma = sample_subhalo_gammas(
+                gamma_sys[s], counts[s], r, spec.gamma_scatter, spec.gamma_bounds
             )
-        out.update(c200=c200, r_s=r_s, alpha_rs=alpha)
+            return {"gamma": gamma, "e1": spec.e1.sample(r, n), "e2": spec.e2.sample(r, n)}
+
+        drawn = _profile_draws(rng, counts, draw)
+        amp = _cosmology.epl_amp_from_m200(
+            out["m200"], drawn["gamma"], out["z"], z_source[sys], cosmo
+        )
+        out.update(amp=amp, **drawn)
+    elif profile == "nfw":
+        out.update(_nfw_fields(out, counts, z_source, macro, scene, rng, cosmo))
     else:  # pragma: no cover - Scene validates the profile
         raise ValueError(f"scene.los.profile = {profile!r} must be 'epl' or 'nfw'")
     return LosPopulation(**out)
+
+
+def _nfw_fields(out, counts, z_source, macro, scene, rng, cosmo) -> dict[str, np.ndarray]:
+    """``c200``, ``r_s``, ``alpha_rs`` of NFW LoS halos (see :func:`los_profiles`)."""
+    from subslope.physics import concentration as _conc
+    from subslope.physics import cosmology as _cosmology
+
+    conc = scene.concentration
+    n_sys = counts.size
+    off = counts_to_offsets(counts)
+    sys = np.repeat(np.arange(n_sys), counts)
+    mult = np.ones(n_sys)
+    if conc.apply_to_los and "c_multiplier" in macro:
+        mult = np.broadcast_to(np.asarray(macro["c_multiplier"], dtype=np.float64), (n_sys,))
+
+    def draw(r: np.random.Generator, s: slice) -> dict[str, np.ndarray]:
+        h = slice(int(off[s.start]), int(off[s.stop]))
+        if h.stop == h.start:
+            return {"c200": np.zeros(0)}
+        m, z = out["m200"][h], out["z"][h]
+        return {"c200": _conc.sample_c200(m, z, r, 1.0, conc.scatter_dex)}
+
+    c200 = mult[sys] * _profile_draws(rng, counts, draw)["c200"]
+    r_s, alpha = np.empty(c200.size), np.empty(c200.size)
+    for z_h, z_s, idx in _group_planes(out["z"], z_source[sys]):
+        r_s[idx], alpha[idx] = _cosmology.nfw_params_from_m200_c(
+            out["m200"][idx], c200[idx], z_h, z_s, cosmo
+        )
+    return {"c200": c200, "r_s": r_s, "alpha_rs": alpha}

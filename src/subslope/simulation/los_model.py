@@ -25,12 +25,15 @@ __all__ = [
     "comoving_distance",
     "slice_redshifts",
     "cone_radius_arcsec",
+    "SliceTable",
+    "slice_table",
     "slice_volumes",
     "sheth_tormen_dndm",
     "mass_function_integral",
     "host_m200_from_epl",
     "host_bias",
     "two_halo_boost",
+    "two_halo_boosts",
 ]
 
 ARCSEC = math.pi / 648000.0  # radians per arcsec
@@ -96,19 +99,19 @@ class LosConfig:
 # --------------------------------------------------------------------------------------
 # validation helpers
 # --------------------------------------------------------------------------------------
-def _check_positive(name: str, value: float) -> None:
-    if not (np.isfinite(value) and value > 0):
+def _check_positive(name: str, value) -> None:
+    if not np.all(np.isfinite(value) & (np.asarray(value) > 0)):
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
 
 
-def _check_redshifts(z_lens: float, z_source: float) -> None:
+def _check_redshifts(z_lens, z_source) -> None:
     _check_positive("z_lens", z_lens)
-    if not (np.isfinite(z_source) and z_source > z_lens):
+    if not np.all(np.isfinite(z_source) & (np.asarray(z_source) > z_lens)):
         raise ValueError(f"z_source must be > z_lens={z_lens!r}, got z_source={z_source!r}")
 
 
-def _check_delta(delta_los: float) -> None:
-    if not (np.isfinite(delta_los) and delta_los >= 0):
+def _check_delta(delta_los) -> None:
+    if not np.all(np.isfinite(delta_los) & (np.asarray(delta_los) >= 0)):
         raise ValueError(f"delta_los must be a finite number >= 0, got {delta_los!r}")
 
 
@@ -190,7 +193,7 @@ def slice_redshifts(
 
 
 def cone_radius_arcsec(
-    z, z_lens: float, z_source: float, cone_diameter: float = 4.0, opening_factor: float = 0.8
+    z, z_lens, z_source, cone_diameter: float = 4.0, opening_factor: float = 0.8
 ) -> np.ndarray:
     """Angular radius [arcsec] of the LoS double cone at redshift ``z``.
 
@@ -198,32 +201,69 @@ def cone_radius_arcsec(
     the radius is multiplied by ``1 − f · D_s · D_lz / (D_ls · D_z)`` with comoving
     distances D_s = D(0, z_s), D_ls = D(z_l, z_s), D_lz = D(z_l, z), D_z = D(0, z)
     and f = ``opening_factor`` (paltas ``cone_angle_to_radius``); it decreases
-    monotonically to ``(1 − f) · cone_diameter / 2`` at z_source.
+    monotonically to ``(1 − f) · cone_diameter / 2`` at z_source. ``z``, ``z_lens`` and
+    ``z_source`` broadcast (e.g. slices (K,) against systems (B, 1)).
     """
     _check_redshifts(z_lens, z_source)
     _check_positive("cone_diameter", cone_diameter)
-    z = np.asarray(z, dtype=np.float64)
+    z, z_lens, z_source = np.broadcast_arrays(
+        *(np.asarray(v, dtype=np.float64) for v in (z, z_lens, z_source))
+    )
     radius = np.full(z.shape, 0.5 * cone_diameter)
     behind = z > z_lens
     if np.any(behind):
-        d_l, d_s = comoving_distance([z_lens, z_source])
+        d_l = comoving_distance(z_lens[behind])
+        d_s = comoving_distance(z_source[behind])
         d_z = comoving_distance(z[behind])
         shrink = opening_factor * d_s * (d_z - d_l) / ((d_s - d_l) * d_z)
         radius[behind] *= 1.0 - shrink
     return radius
 
 
-def slice_volumes(z_lens: float, z_source: float, config: LosConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Comoving volume [Mpc³] of each slice of the cone (see :func:`slice_redshifts`).
+@dataclass(frozen=True)
+class SliceTable:
+    """The slices of ``B`` systems on one grid (:func:`slice_table`).
 
-    V = π (D_M(z_mid) θ(z_mid))² (D_C(z_lo + dz) − D_C(z_lo)), θ in radians.
+    Attributes:
+        z_lo, z_mid: (K,) lower edges and mid redshifts of the slices of the system with
+            the farthest source; system b owns the first ``n[b]`` of them.
+        n: (B,) number of slices of each system.
+        radius: (B, K) cone radius [arcsec] at each mid redshift.
+        volume: (B, K) comoving volume [Mpc³] of each slice of each cone.
     """
-    z_lo, z_mid = slice_redshifts(z_source, config.dz, config.z_min)
-    theta = ARCSEC * cone_radius_arcsec(
-        z_mid, z_lens, z_source, config.cone_diameter, config.opening_factor
+
+    z_lo: np.ndarray
+    z_mid: np.ndarray
+    n: np.ndarray
+    radius: np.ndarray
+    volume: np.ndarray
+
+
+def slice_table(z_lens, z_source, config: LosConfig = DEFAULT_CONFIG) -> SliceTable:
+    """Slices, cone radii and slice volumes of systems ``z_lens``, ``z_source`` (B,).
+
+    V = π (D_M(z_mid) θ(z_mid))² (D_C(z_lo + dz) − D_C(z_lo)), θ in radians; slices as
+    in :func:`slice_redshifts` (the grid of every system is a prefix of the farthest one's).
+    """
+    z_lens = np.atleast_1d(np.asarray(z_lens, dtype=np.float64))
+    z_source = np.atleast_1d(np.asarray(z_source, dtype=np.float64))
+    _check_redshifts(z_lens, z_source)
+    n = np.array([slice_redshifts(float(v), config.dz, config.z_min)[0].size for v in z_source])
+    z_lo, z_mid = slice_redshifts(float(np.max(z_source)), config.dz, config.z_min)
+    z_lo, z_mid = z_lo[: n.max(initial=0)], z_mid[: n.max(initial=0)]
+    radius = cone_radius_arcsec(
+        z_mid, z_lens[:, None], z_source[:, None], config.cone_diameter, config.opening_factor
     )
     d = comoving_distance(np.stack([z_lo, z_mid, z_lo + config.dz]))
-    return np.pi * (d[1] * theta) ** 2 * (d[2] - d[0])
+    volume = np.pi * (d[1] * (ARCSEC * radius)) ** 2 * (d[2] - d[0])
+    return SliceTable(z_lo=z_lo, z_mid=z_mid, n=n, radius=radius, volume=volume)
+
+
+def slice_volumes(z_lens: float, z_source: float, config: LosConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """Comoving volume [Mpc³] of each slice of the cone (see :func:`slice_redshifts`
+    and :func:`slice_table`)."""
+    table = slice_table(z_lens, z_source, config)
+    return table.volume[0, : table.n[0]]
 
 
 # --------------------------------------------------------------------------------------
@@ -296,13 +336,14 @@ def mass_function_integral(
 # --------------------------------------------------------------------------------------
 # host halo and two-halo term
 # --------------------------------------------------------------------------------------
-def host_m200_from_epl(theta_e, gamma, z_lens: float, z_source: float) -> np.ndarray:
+def host_m200_from_epl(theta_e, gamma, z_lens, z_source) -> np.ndarray:
     """Host M200 [M☉] of a main-lens EPL with Einstein radius ``theta_e`` [arcsec].
 
     Inverts the EPL mass relation of docs/simulation.md
     (:func:`subslope.physics.cosmology.epl_log_amp_from_m200`): since r200 ∝ M^(1/3), the
     amplitude is θ_E^(γ−1) = K(γ) M^(γ/3), so M = (θ_E^(γ−1) / K(γ))^(3/γ) with
-    ln K = ln A(M = 1 M☉). Done in logs; vectorised over ``theta_e`` and ``gamma``.
+    ln K = ln A(M = 1 M☉). Done in logs; vectorised over ``theta_e``, ``gamma`` and the
+    redshifts.
     """
     _check_redshifts(z_lens, z_source)
     theta_e = np.asarray(theta_e, dtype=np.float64)
@@ -316,14 +357,18 @@ def host_m200_from_epl(theta_e, gamma, z_lens: float, z_source: float) -> np.nda
     return np.exp(3.0 / gamma * (ln_amp - ln_k))
 
 
-def host_bias(host_m200: float, z_lens: float) -> float:
-    """Linear halo bias of the host (colossus Tinker et al. 2010, M200c)."""
+def host_bias(host_m200, z_lens):
+    """Linear halo bias of the host (colossus Tinker et al. 2010, M200c); scalars or
+    arrays that broadcast."""
     from colossus.lss import bias
 
     _check_positive("host_m200", host_m200)
     _check_positive("z_lens", z_lens)
     cosmo = colossus_cosmology()
-    return float(bias.haloBias(host_m200 * cosmo.h, z_lens, mdef="200c", model="tinker10"))
+    b = bias.haloBias(
+        np.asarray(host_m200, dtype=np.float64) * cosmo.h, z_lens, mdef="200c", model="tinker10"
+    )
+    return float(b) if np.ndim(b) == 0 else np.asarray(b, dtype=np.float64)
 
 
 def two_halo_boost(
@@ -343,26 +388,44 @@ def two_halo_boost(
     equally spaced redshifts of the slice, leaving out points closer than
     ``r_min`` [Mpc] (inside the host). All other slices get exactly 1.
     """
+    z_lo = np.atleast_1d(np.asarray(z_lo, dtype=np.float64))
+    return two_halo_boosts(z_lo, [z_lo.size], [z_lens], [host_m200], dz, r_min, r_max, n_quad)[0]
+
+
+def two_halo_boosts(
+    z_lo, n_slices, z_lens, host_m200, dz=0.01, r_min=0.5, r_max=10.0, n_quad=100
+) -> np.ndarray:
+    """:func:`two_halo_boost` of ``B`` systems (``n_slices``, ``z_lens``, ``host_m200``
+    (B,)) on the slice grid ``z_lo`` (K,): (B, K), 1 past each system's ``n_slices``.
+
+    ξ_lin(r, z) = ξ_lin(r, 0) D₊(z)² (colossus' own relation), so the correlation function
+    is interpolated once for the slices of all systems.
+    """
+    z_lens = np.asarray(z_lens, dtype=np.float64)
+    host_m200 = np.asarray(host_m200, dtype=np.float64)
     _check_positive("host_m200", host_m200)
     _check_positive("z_lens", z_lens)
-    z_lo = np.atleast_1d(np.asarray(z_lo, dtype=np.float64))
-    boost = np.ones(z_lo.shape)
+    z_lo = np.asarray(z_lo, dtype=np.float64)
+    boost = np.ones((z_lens.size, z_lo.size))
     if z_lo.size == 0:
         return boost
     cosmo = colossus_cosmology()
-    d_lens = float(comoving_distance(z_lens))
+    d_lens = comoving_distance(z_lens)
     # the nearest point of each slice to the lens (z_lens itself if inside)
-    z_near = np.clip(z_lens, z_lo, z_lo + dz)
-    gated = np.abs(comoving_distance(z_near) - d_lens) < r_max
+    z_near = np.clip(z_lens[:, None], z_lo, z_lo + dz)
+    own = np.arange(z_lo.size) < np.asarray(n_slices)[:, None]
+    gated = own & (np.abs(comoving_distance(z_near) - d_lens[:, None]) < r_max)
     if not np.any(gated):
         return boost
-    quad = z_lo[gated, None] + dz * np.linspace(0.0, 1.0, n_quad)[None, :]
-    r = np.abs(comoving_distance(quad) - d_lens)
+    rows, cols = np.nonzero(gated)
+    quad = z_lo[cols, None] + dz * np.linspace(0.0, 1.0, n_quad)[None, :]
+    r = np.abs(comoving_distance(quad) - d_lens[rows, None])
     keep = r > r_min
     xi = np.zeros(r.shape)
     if np.any(keep):
-        xi[keep] = cosmo.correlationFunction(r[keep] * cosmo.h, z_lens)
+        growth2 = np.broadcast_to((cosmo.growthFactor(z_lens) ** 2)[rows, None], r.shape)
+        xi[keep] = cosmo.correlationFunction(r[keep] * cosmo.h, 0.0) * growth2[keep]
     n_keep = keep.sum(axis=1)
     mean_xi = np.where(n_keep > 0, xi.sum(axis=1) / np.maximum(n_keep, 1), 0.0)
-    boost[gated] = 1.0 + mean_xi * host_bias(host_m200, z_lens)
+    boost[rows, cols] = 1.0 + mean_xi * host_bias(host_m200[rows], z_lens[rows])
     return boost

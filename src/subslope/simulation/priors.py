@@ -51,13 +51,17 @@ def truncated_normal_quantile(u, a, b) -> np.ndarray:
     in its lower tail, where it keeps full relative precision: agrees with
     ``scipy.stats.truncnorm.ppf`` to ~1e-12 inside, ~1e-7 in the far tails, at ~1/20 of its
     cost per call (which matters for the thousands of small per-image draws of a shard).
-    Intervals so far out that Φ underflows (|a|, |b| ≳ 37) go to scipy. Arrays broadcast;
-    the result is clipped to ``[a, b]``.
+    Intervals so far out that Φ underflows (|a|, |b| ≳ 37) go to scipy. Arrays broadcast
+    (Φ is evaluated at the shape of the bounds, so one interval for many ``u`` costs two
+    Φ calls); the result is clipped to ``[a, b]``.
     """
-    u, a, b = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (u, a, b)))
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
     flip = a > 0
     lo, hi = np.where(flip, -b, a), np.where(flip, -a, b)
-    p_lo, p_hi = special.ndtr(lo), special.ndtr(hi)
+    p_lo, p_hi = special.ndtr(lo), special.ndtr(hi)  # at the shape of the bounds
+    u = np.asarray(u, dtype=np.float64)
+    shape = np.broadcast_shapes(u.shape, a.shape)
+    u, a, b, flip, p_lo, p_hi = (np.broadcast_to(v, shape) for v in (u, a, b, flip, p_lo, p_hi))
     q = np.where(flip, 1.0 - u, u)
     with np.errstate(invalid="ignore", divide="ignore"):
         x = special.ndtri(p_lo + q * (p_hi - p_lo))

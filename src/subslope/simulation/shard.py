@@ -183,37 +183,28 @@ def _draw_populations(
     there) and line-of-sight halos of images ``idx``, each from its own stream."""
     comp = sc.components
     subs = lpop = None
+    m_b = {k: v[idx.start : idx.stop] for k, v in macro.items()}
     if comp.subhalos:
-        parts = []
-        for j, i in enumerate(idx):
-            m_i = {k: v[i : i + 1] for k, v in macro.items()}
-            parts.append(
-                sample_subhalos(
-                    sc,
-                    m_i,
-                    np.random.default_rng(draws.sub_streams[i]),
-                    None if smooth is None else smooth[j : j + 1],
-                    npix=draws.npix,
-                    pixel_scale=draws.pixel_scale,
-                )
-            )
-        subs = _concat_subhalos(parts)
+        subs = sample_subhalos(
+            sc,
+            m_b,
+            [np.random.default_rng(draws.sub_streams[i]) for i in idx],
+            smooth,
+            npix=draws.npix,
+            pixel_scale=draws.pixel_scale,
+        )
     if comp.los:
-        parts = []
-        for i in idx:
-            rng = np.random.default_rng(draws.los_streams[i])
-            m_i = {k: v[i : i + 1] for k, v in macro.items()}
-            batch = sample_los_batch(
-                m_i["z_lens"],
-                m_i["z_source"],
-                m_i["theta_e"],
-                m_i["gamma_ml"],
-                m_i["delta_los"],
-                rng,
-                draws.los_config,
-            )
-            parts.append(rounded_los(los_profiles(batch, sc, m_i, rng)))
-        lpop = _concat_los(parts)
+        rngs = [np.random.default_rng(draws.los_streams[i]) for i in idx]
+        batch = sample_los_batch(
+            m_b["z_lens"],
+            m_b["z_source"],
+            m_b["theta_e"],
+            m_b["gamma_ml"],
+            m_b["delta_los"],
+            rngs,
+            draws.los_config,
+        )
+        lpop = rounded_los(los_profiles(batch, sc, m_b, rngs))
     return subs, lpop
 
 

@@ -32,7 +32,7 @@ import numpy as np
 from subslope.physics import concentration as _conc
 from subslope.physics import cosmology as _cosmo
 from subslope.physics.instrument import NPIX, PIXEL_SCALE
-from subslope.ragged import counts_to_offsets
+from subslope.ragged import counts_to_offsets, counts_to_starts
 from subslope.simulation.precision import SUBHALO_DTYPES, rounded
 from subslope.simulation.priors import Prior, truncated_normal_quantile
 
@@ -159,8 +159,10 @@ def sample_subhalo_gammas(
     u = rng.random(mu.size)
     if scatter == 0 or mu.size == 0:
         return np.clip(mu, lo, hi)
-    sigma = scatter * np.abs(mu)
-    a, b = (lo - mu) / sigma, (hi - mu) / sigma
+    sigma = scatter * np.abs(g)
+    a, b = (lo - g) / sigma, (hi - g) / sigma
+    if c.size > 1:  # one system keeps its bounds as scalars (two Φ calls in all)
+        sigma, a, b = (np.repeat(v, c) for v in (sigma, a, b))
     return np.clip(mu + sigma * truncated_normal_quantile(u, a, b), lo, hi)
 
 
@@ -222,11 +224,12 @@ def place_on_arc(
             f"smooth_images[{int(np.flatnonzero(empty)[0])}] has no pixel above threshold_fraction "
             f"{threshold_fraction} of its maximum (blank image?) but subhalos must be placed on it"
         )
-    # Candidate pixel indices first in each row (stable: ascending pixel index).
-    order = np.argsort(~mask, axis=1, kind="stable")
+    # each system's candidate pixels in ascending pixel index, systems one after another
+    _, candidates = np.nonzero(mask)
+    first = counts_to_starts(n_cand)
     sys = system_index(c)
     pick = np.minimum((rng.random(sys.size) * n_cand[sys]).astype(np.int64), n_cand[sys] - 1)
-    flat = order[sys, pick]
+    flat = candidates[first[sys] + pick]
     x, y = _pixel_centres(flat, h, w, pixel_scale)
     off = rng.uniform(-0.5, 0.5, size=(2, sys.size)) * pixel_scale
     return x + off[0], y + off[1]
@@ -258,17 +261,21 @@ def epl_amplitudes(mass, gamma, counts, z_lens, z_source, cosmo=None) -> np.ndar
     """EPL amplitudes θ_E^(γ−1) (arcsec^(γ−1)) of a ragged population.
 
     ``mass``, ``gamma`` flat (N,); ``counts``, ``z_lens``, ``z_source`` per system (B,).
-    One call of :func:`subslope.physics.cosmology.epl_amp_from_m200` per system, so that its
-    distances are evaluated (and cached) at scalar redshifts.
+    :func:`subslope.physics.cosmology.epl_amp_from_m200` with each system's redshifts
+    repeated over its subhalos (its plane terms evaluated once per system).
     """
-    c, off, zl, zs = _per_system(counts, z_lens, z_source)
+    c, _, zl, zs = _per_system(counts, z_lens, z_source)
     mass = np.asarray(mass, dtype=np.float64)
     gamma = np.asarray(gamma, dtype=np.float64)
-    out = np.empty_like(mass)
-    for b in np.flatnonzero(c):
-        s = slice(off[b], off[b + 1])
-        out[s] = _cosmo.epl_amp_from_m200(mass[s], gamma[s], float(zl[b]), float(zs[b]), cosmo)
-    return out
+    if not mass.size:
+        return mass.copy()
+    live = c > 0
+    ln_rho200, ln_sigma = _cosmo.plane_logs(zl[live], zs[live], cosmo)
+    return np.exp(
+        _cosmo.epl_log_amp_from_logs(
+            mass, gamma, np.repeat(ln_rho200, c[live]), np.repeat(ln_sigma, c[live])
+        )
+    )
 
 
 def sample_concentrations(
@@ -371,7 +378,7 @@ def _heaviest_first(counts: np.ndarray, drawn: dict[str, np.ndarray]) -> dict[st
 def sample_subhalos(
     scene,
     macro: dict[str, np.ndarray],
-    rng: np.random.Generator,
+    rng,
     smooth_images=None,
     *,
     npix: int = 100,
@@ -387,7 +394,10 @@ def sample_subhalos(
         Output of :func:`subslope.simulation.macro.sample_macro` (``n_sub``, ``gamma_sub``,
         ``z_lens``, ``z_source``, ``lens_x``, ``lens_y``, ``c_multiplier`` as needed).
         Without ``n_sub`` (subhalos off) every count is 0.
-    rng : numpy.random.Generator
+    rng : numpy.random.Generator, or a sequence of one Generator per system
+        One Generator: every system's draws from it, field by field. One per system: each
+        system's draws from its own, in the same field order, so that a system's subhalos
+        do not depend on the other systems of the batch.
     smooth_images : array (B, H, W), optional
         Smooth-model images; required for ``placement='arc'`` when any count > 0.
     npix, pixel_scale : int, float
@@ -402,6 +412,43 @@ def sample_subhalos(
     spec = scene.subhalos
     n_img = macro["z_lens"].shape[0]
     counts = _counts(macro["n_sub"]) if "n_sub" in macro else np.zeros(n_img, dtype=np.int64)
+    if spec.placement == "arc" and smooth_images is None and counts.sum():
+        raise ValueError(
+            f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)"
+        )
+    if isinstance(rng, np.random.Generator):
+        drawn = _draw_fields(scene, macro, counts, rng, smooth_images, npix, pixel_scale)
+    else:
+        rngs = list(rng)
+        if len(rngs) != n_img:
+            raise ValueError(f"rng: {len(rngs)} generators for {n_img} systems")
+        parts = [
+            _draw_fields(
+                scene,
+                {k: v[b : b + 1] for k, v in macro.items()},
+                counts[b : b + 1],
+                rngs[b],
+                None if smooth_images is None else smooth_images[b : b + 1],
+                npix,
+                pixel_scale,
+            )
+            for b in range(n_img)
+        ]
+        if not parts:  # no systems: nothing is drawn
+            parts = [_draw_fields(scene, macro, counts, np.random.default_rng(0), None, 1, 1.0)]
+        drawn = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    bounds = {"gamma": spec.gamma_bounds}
+    drawn = {
+        k: rounded(v, SUBHALO_DTYPES[k], f"subhalos.{k}", bounds.get(k)) for k, v in drawn.items()
+    }
+    return subhalo_population(spec.profile, counts, _heaviest_first(counts, drawn), macro, cosmo)
+
+
+def _draw_fields(
+    scene, macro, counts, rng: np.random.Generator, smooth_images, npix, pixel_scale
+) -> dict[str, np.ndarray]:
+    """The drawn fields of :func:`sample_subhalos` (float64, before rounding)."""
+    spec = scene.subhalos
     n = int(counts.sum())
     drawn = {"mass": spec.mass.sample(rng, n)}
     if spec.profile == "epl":
@@ -413,11 +460,7 @@ def sample_subhalos(
         drawn["e1"] = spec.e1.sample(rng, n)
         drawn["e2"] = spec.e2.sample(rng, n)
     if spec.placement == "arc":
-        if smooth_images is None:
-            if n:
-                raise ValueError(
-                    f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)"
-                )
+        if smooth_images is None:  # no subhalos (checked by the caller)
             x = y = np.zeros(0)
         else:
             x, y = place_on_arc(smooth_images, counts, rng, pixel_scale, spec.threshold_fraction)
@@ -430,11 +473,7 @@ def sample_subhalos(
             counts,
             macro["z_lens"],
             rng,
-            macro.get("c_multiplier", np.ones(n_img)),
+            macro.get("c_multiplier", np.ones(counts.size)),
             scene.concentration.scatter_dex,
         )
-    bounds = {"gamma": spec.gamma_bounds}
-    drawn = {
-        k: rounded(v, SUBHALO_DTYPES[k], f"subhalos.{k}", bounds.get(k)) for k, v in drawn.items()
-    }
-    return subhalo_population(spec.profile, counts, _heaviest_first(counts, drawn), macro, cosmo)
+    return drawn
