@@ -351,7 +351,7 @@ def test_batched_expectations_equal_one_system_at_a_time():
         assert all(
             np.array_equal(getattr(got, f), getattr(one, f)) for f in ("z", "x", "y", "m200")
         )
-    with pytest.raises(ValueError, match="sequence of 3"):
+    with pytest.raises(ValueError, match=r"sequence of 3 of them \(one per system\), got 1 items"):
         los.sample_los_batch(zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(0)])
 
 

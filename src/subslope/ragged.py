@@ -4,14 +4,21 @@ The simulator stores a population (subhalos of each lens, halos of each line-of-
 slice) as one flat array of all members plus per-system counts; system ``b`` holds
 ``values[offsets[b]:offsets[b + 1]]``. The renderer works on the padded layout, a
 ``(B, N)`` array and a boolean mask of the real slots. This module converts between
-the two; it depends on numpy only.
+the two, and concatenates the fields of systems drawn one by one from their own
+random generators (:func:`draw_per_system`); it depends on numpy only.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["counts_to_offsets", "counts_to_starts", "pack_ragged", "unpack_ragged"]
+__all__ = [
+    "counts_to_offsets",
+    "counts_to_starts",
+    "draw_per_system",
+    "pack_ragged",
+    "unpack_ragged",
+]
 
 
 def _numpy(x) -> np.ndarray:
@@ -86,3 +93,26 @@ def unpack_ragged(padded, mask) -> tuple[np.ndarray, np.ndarray]:
     if padded.shape[:2] != mask.shape:
         raise ValueError(f"padded shape {padded.shape} does not start with mask shape {mask.shape}")
     return padded[mask], mask.sum(axis=1).astype(np.int64)
+
+
+def draw_per_system(rng, n_systems: int, draw) -> dict[str, np.ndarray]:
+    """Fields of ``n_systems`` systems drawn by ``draw(generator, systems)``, where
+    ``systems`` is the slice of systems to draw and the result maps field names to flat
+    arrays of their members in system order.
+
+    ``rng`` is one ``numpy.random.Generator`` (one call draws every system, field by
+    field) or a sequence of ``n_systems`` of them (one call per system, each from its own
+    generator, concatenated: a system's draws then do not depend on the others).
+    """
+    if isinstance(rng, np.random.Generator):
+        return draw(rng, slice(0, n_systems))
+    rngs = list(rng)
+    if len(rngs) != n_systems or not all(isinstance(r, np.random.Generator) for r in rngs):
+        raise ValueError(
+            f"rng must be a numpy.random.Generator or a sequence of {n_systems} of them "
+            f"(one per system), got {len(rngs)} items"
+        )
+    if not rngs:  # no systems: the empty fields, nothing is drawn from this generator
+        return draw(np.random.default_rng(0), slice(0, 0))
+    parts = [draw(r, slice(b, b + 1)) for b, r in enumerate(rngs)]
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from subslope.ragged import counts_to_offsets, counts_to_starts
+from subslope.ragged import counts_to_offsets, counts_to_starts, draw_per_system
 from subslope.simulation.los_model import (
     DEFAULT_CONFIG,
     LosConfig,
@@ -175,20 +175,27 @@ def expected_counts(
     _check_delta(delta_los)
     _check_positive("host_m200", host_m200)
     table = slice_table(z_lens, z_source, config)
-    lam = _expected_counts(table, [z_lens], [host_m200], [delta_los], config)
+    n_int = _slice_mass_tables(table, config)[0]
+    lam = _expected_counts(table, [z_lens], [host_m200], [delta_los], n_int, config)
     return lam[0, : table.n[0]]
 
 
-def _expected_counts(table, z_lens, host_m200, delta_los, config: LosConfig) -> np.ndarray:
-    """(B, K) expected counts of the systems of ``table`` (0 past a system's slices)."""
-    if table.z_mid.size == 0:
-        return np.zeros((len(z_lens), 0))
-    n_int = _mass_tables(
+def _slice_mass_tables(table, config: LosConfig):
+    """``(n per slice [Mpc⁻³], stacked inverse-CDF table, ln M grid)`` of the slices of
+    ``table`` (:func:`subslope.simulation.los_model._mass_tables`, cached)."""
+    return _mass_tables(
         tuple(table.z_mid.tolist()),
         float(config.m_min),
         float(config.m_max),
         int(config.n_mass_grid),
-    )[0]
+    )
+
+
+def _expected_counts(table, z_lens, host_m200, delta_los, n_int, config: LosConfig):
+    """(B, K) expected counts of the systems of ``table`` (0 past a system's slices);
+    ``n_int`` the mass-function integral of each slice."""
+    if table.z_mid.size == 0:
+        return np.zeros((len(z_lens), 0))
     own = np.arange(table.z_mid.size) < table.n[:, None]
     counts = np.asarray(delta_los, dtype=np.float64)[:, None] * n_int * table.volume
     if config.two_halo:
@@ -249,18 +256,6 @@ def sample_los(
     return sample_los_batch(z_lens, z_source, theta_e, gamma_ml, delta_los, rng, config).system(0)
 
 
-def _generators(rng, n: int) -> list:
-    """``n`` generators: ``rng`` repeated, or the sequence ``rng`` (one per system)."""
-    if isinstance(rng, np.random.Generator):
-        return [rng] * n
-    rngs = list(rng)
-    if len(rngs) != n or not all(isinstance(r, np.random.Generator) for r in rngs):
-        raise ValueError(
-            f"rng must be a numpy.random.Generator or a sequence of {n} of them (one per system)"
-        )
-    return rngs
-
-
 def sample_los_batch(
     z_lens,
     z_source,
@@ -282,32 +277,27 @@ def sample_los_batch(
     if arrays[0].ndim != 1:
         raise ValueError(f"system parameters must be scalars or 1-D, got shape {arrays[0].shape}")
     zl, zs, theta_e, gamma_ml, delta = arrays
-    rngs = _generators(rng, zl.size)
-    if not zl.size:
-        empty = np.zeros(0)
-        return LosBatch(z=empty, x=empty, y=empty, m200=empty, counts=np.zeros(0, np.int64))
-    _check_redshifts(zl, zs)
-    _check_delta(delta)
-    host = host_m200_from_epl(theta_e, gamma_ml, zl, zs)
+    if zl.size:
+        _check_redshifts(zl, zs)
+        _check_delta(delta)
+        host = host_m200_from_epl(theta_e, gamma_ml, zl, zs)
+    else:
+        host = np.zeros(0)
     table = slice_table(zl, zs, config)
-    lam = _expected_counts(table, zl, host, delta, config)
-    _, cdf, ln_m = _mass_tables(
-        tuple(table.z_mid.tolist()),
-        float(config.m_min),
-        float(config.m_max),
-        int(config.n_mass_grid),
-    )
+    n_int, cdf, ln_m = _slice_mass_tables(table, config)
+    lam = _expected_counts(table, zl, host, delta, n_int, config)
     tables = (cdf, ln_m, (config.m_min, config.m_max))
-    parts = [
-        _draw(lam[b, :k], table.z_mid[:k], table.radius[b, :k], tables, rngs[b])
-        for b, k in enumerate(table.n)
-    ]
-    counts = np.array([len(p) for p in parts], dtype=np.int64)
 
-    def cat(name: str) -> np.ndarray:
-        return np.concatenate([getattr(p, name) for p in parts])
+    def draw(r: np.random.Generator, s: slice) -> dict[str, np.ndarray]:
+        parts = [
+            _draw(lam[b, :k], table.z_mid[:k], table.radius[b, :k], tables, r)
+            for b, k in zip(range(s.start, s.stop), table.n[s])
+        ]
+        fields = {f: [getattr(p, f) for p in parts] for f in ("z", "x", "y", "m200")}
+        out = {f: np.concatenate(v) if v else np.zeros(0) for f, v in fields.items()}
+        return {**out, "counts": np.array([len(p) for p in parts], dtype=np.int64)}
 
-    return LosBatch(z=cat("z"), x=cat("x"), y=cat("y"), m200=cat("m200"), counts=counts)
+    return LosBatch(**draw_per_system(rng, zl.size, draw))
 
 
 # --------------------------------------------------------------------------------------
@@ -325,18 +315,6 @@ def _group_planes(z: np.ndarray, z_source_halo: np.ndarray):
         (float(uniq[k, 0]), float(uniq[k, 1]), order[bounds[k] : bounds[k + 1]])
         for k in range(uniq.shape[0])
     ]
-
-
-def _profile_draws(rng, counts: np.ndarray, draw) -> dict[str, np.ndarray]:
-    """``draw(generator, systems)`` → fields of the halos of the slice ``systems``: of all
-    systems from one Generator, or of each system from its own, concatenated."""
-    if isinstance(rng, np.random.Generator):
-        return draw(rng, slice(0, counts.size))
-    rngs = _generators(rng, counts.size)
-    parts = [draw(rngs[b], slice(b, b + 1)) for b in range(counts.size)]
-    if not parts:
-        return draw(np.random.default_rng(0), slice(0, 0))  # no systems: nothing drawn
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
 def los_profiles(batch: LosBatch, scene, macro: dict, rng, *, cosmo=None) -> LosPopulation:
@@ -395,7 +373,7 @@ def los_profiles(batch: LosBatch, scene, macro: dict, rng, *, cosmo=None) -> Los
             )
             return {"gamma": gamma, "e1": spec.e1.sample(r, n), "e2": spec.e2.sample(r, n)}
 
-        drawn = _profile_draws(rng, counts, draw)
+        drawn = draw_per_system(rng, counts.size, draw)
         amp = _cosmology.epl_amp_from_m200(
             out["m200"], drawn["gamma"], out["z"], z_source[sys], cosmo
         )
@@ -427,7 +405,7 @@ def _nfw_fields(out, counts, z_source, macro, scene, rng, cosmo) -> dict[str, np
         m, z = out["m200"][h], out["z"][h]
         return {"c200": _conc.sample_c200(m, z, r, 1.0, conc.scatter_dex)}
 
-    c200 = mult[sys] * _profile_draws(rng, counts, draw)["c200"]
+    c200 = mult[sys] * draw_per_system(rng, counts.size, draw)["c200"]
     r_s, alpha = np.empty(c200.size), np.empty(c200.size)
     for z_h, z_s, idx in _group_planes(out["z"], z_source[sys]):
         r_s[idx], alpha[idx] = _cosmology.nfw_params_from_m200_c(

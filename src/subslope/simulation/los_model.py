@@ -186,10 +186,13 @@ def slice_redshifts(
     _check_positive("dz", dz)
     _check_positive("z_min", z_min)
     _check_positive("z_source", z_source)
-    n = math.ceil(round((z_source - dz - z_min) / dz, 9))
-    n = max(n, 0)
-    z_lo = np.round(z_min + dz * np.arange(n, dtype=np.float64), 10)
+    z_lo = np.round(z_min + dz * np.arange(_slice_count(z_source, dz, z_min), dtype=np.float64), 10)
     return z_lo, z_lo + 0.5 * dz
+
+
+def _slice_count(z_source: float, dz: float, z_min: float) -> int:
+    """Number of slices of :func:`slice_redshifts` in front of a source at ``z_source``."""
+    return max(math.ceil(round((z_source - dz - z_min) / dz, 9)), 0)
 
 
 def cone_radius_arcsec(
@@ -248,9 +251,9 @@ def slice_table(z_lens, z_source, config: LosConfig = DEFAULT_CONFIG) -> SliceTa
     z_lens = np.atleast_1d(np.asarray(z_lens, dtype=np.float64))
     z_source = np.atleast_1d(np.asarray(z_source, dtype=np.float64))
     _check_redshifts(z_lens, z_source)
-    n = np.array([slice_redshifts(float(v), config.dz, config.z_min)[0].size for v in z_source])
-    z_lo, z_mid = slice_redshifts(float(np.max(z_source)), config.dz, config.z_min)
-    z_lo, z_mid = z_lo[: n.max(initial=0)], z_mid[: n.max(initial=0)]
+    n = np.array([_slice_count(float(v), config.dz, config.z_min) for v in z_source], np.int64)
+    z_far = float(z_source.max()) if z_source.size else config.z_min
+    z_lo, z_mid = slice_redshifts(z_far, config.dz, config.z_min)
     radius = cone_radius_arcsec(
         z_mid, z_lens[:, None], z_source[:, None], config.cone_diameter, config.opening_factor
     )

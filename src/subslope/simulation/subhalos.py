@@ -32,7 +32,7 @@ import numpy as np
 from subslope.physics import concentration as _conc
 from subslope.physics import cosmology as _cosmo
 from subslope.physics.instrument import NPIX, PIXEL_SCALE
-from subslope.ragged import counts_to_offsets, counts_to_starts
+from subslope.ragged import counts_to_offsets, counts_to_starts, draw_per_system
 from subslope.simulation.precision import SUBHALO_DTYPES, rounded
 from subslope.simulation.priors import Prior, truncated_normal_quantile
 
@@ -416,27 +416,13 @@ def sample_subhalos(
         raise ValueError(
             f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)"
         )
-    if isinstance(rng, np.random.Generator):
-        drawn = _draw_fields(scene, macro, counts, rng, smooth_images, npix, pixel_scale)
-    else:
-        rngs = list(rng)
-        if len(rngs) != n_img:
-            raise ValueError(f"rng: {len(rngs)} generators for {n_img} systems")
-        parts = [
-            _draw_fields(
-                scene,
-                {k: v[b : b + 1] for k, v in macro.items()},
-                counts[b : b + 1],
-                rngs[b],
-                None if smooth_images is None else smooth_images[b : b + 1],
-                npix,
-                pixel_scale,
-            )
-            for b in range(n_img)
-        ]
-        if not parts:  # no systems: nothing is drawn
-            parts = [_draw_fields(scene, macro, counts, np.random.default_rng(0), None, 1, 1.0)]
-        drawn = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def draw(r: np.random.Generator, s: slice) -> dict[str, np.ndarray]:
+        smooth = None if smooth_images is None else smooth_images[s]
+        m_s = {k: v[s] for k, v in macro.items()}
+        return _draw_fields(scene, m_s, counts[s], r, smooth, npix, pixel_scale)
+
+    drawn = draw_per_system(rng, n_img, draw)
     bounds = {"gamma": spec.gamma_bounds}
     drawn = {
         k: rounded(v, SUBHALO_DTYPES[k], f"subhalos.{k}", bounds.get(k)) for k, v in drawn.items()
