@@ -11,7 +11,9 @@ from subslope.physics.instrument import (
     add_noise,
     convolve,
     degrade_psf,
+    fft_size,
     gaussian_psf,
+    kernel_spectrum,
     load_empirical_psf,
     noise_sigma_map,
     psf_fwhm,
@@ -225,3 +227,32 @@ def test_cuda_matches_cpu():
     assert n1.device.type == "cuda" and torch.equal(n1, n2)
     var = (add_noise(torch.full((200000,), 1.0, device=dev, dtype=torch.float64), 3) - 1.0).var()
     assert float(var) == pytest.approx(float(noise_sigma_map(torch.tensor(1.0)) ** 2), rel=0.03)
+
+
+def test_fft_size_is_the_smallest_2_3_smooth_length():
+    def smooth(n):
+        for p in (2, 3):
+            while n % p == 0:
+                n //= p
+        return n == 1
+
+    for n in range(1, 400):
+        s = fft_size(n)
+        assert s >= n and smooth(s)
+        assert not any(smooth(k) for k in range(n, s))
+    assert fft_size(124) == 128  # a 100-pixel image and a 25-pixel PSF
+    with pytest.raises(ValueError, match="n = 0"):
+        fft_size(0)
+
+
+def test_convolution_with_a_precomputed_kernel_spectrum():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(3, 40, 40, generator=g, dtype=torch.float64)
+    k = torch.rand(9, 9, generator=g, dtype=torch.float64)
+    k = k / k.sum()
+    spec = kernel_spectrum(k, (40, 40))
+    assert spec.shape == (fft_size(48), fft_size(48))
+    assert torch.equal(convolve(img, k, "fft", spectrum=spec), convolve(img, k, "fft"))
+    torch.testing.assert_close(convolve(img, k, "fft", spectrum=spec), convolve(img, k, "direct"))
+    with pytest.raises(ValueError, match=r"spectrum is for a \(9, 9\) kernel and \(40, 40\)"):
+        convolve(img[:, :30, :30], k, "fft", spectrum=spec)

@@ -9,6 +9,7 @@ from lensing_checks import fd_grad, ring_points
 from subslope.physics.profiles.multipole import (
     multipole_convergence,
     multipole_deflection,
+    multipole_deflections,
     multipole_potential,
 )
 from subslope.physics.profiles.shear import shear_convergence, shear_deflection, shear_potential
@@ -123,3 +124,16 @@ def test_cuda_paths():
         sheet_deflection(x, x, -0.02),
     ):
         assert out[0].device.type == "cuda" and torch.isfinite(out[0]).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_multipoles_about_one_centre_equal_each_order_alone(dtype):
+    g = torch.Generator().manual_seed(3)
+    x, y = (torch.randn(2, 500, generator=g, dtype=dtype) for _ in range(2))
+    a3, a4, p3, p4, cx = (0.05 * torch.rand(2, 1, generator=g, dtype=dtype) for _ in range(5))
+    both = multipole_deflections(x, y, (3, 4), (a3, a4), (p3, p4), cx, -cx)
+    for (ax, ay), (m, a, p) in zip(both, ((3, a3, p3), (4, a4, p4))):
+        bx, by = multipole_deflection(x, y, m, a, p, cx, -cx)
+        assert torch.equal(ax, bx) and torch.equal(ay, by)
+    with pytest.raises(ValueError, match="orders must increase"):
+        multipole_deflections(x, y, (4, 3), (a3, a4), (p3, p4))

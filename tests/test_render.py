@@ -174,7 +174,7 @@ def test_left_out_stages_are_not_evaluated(monkeypatch):
         "sersic_ellipse_from_magnitude",
         "population_pass",
         "shear_deflection",
-        "multipole_deflection",
+        "multipole_deflections",
     ):
         monkeypatch.setattr(R, name, _boom(name))
     for name in ("split_pass", "member_table"):

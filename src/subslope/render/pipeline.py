@@ -55,12 +55,17 @@ from torch import Tensor
 
 from subslope.devices import pick_device
 from subslope.physics.grid import pixel_grid
-from subslope.physics.instrument import convolve
+from subslope.physics.instrument import (
+    KernelSpectrum,
+    convolution_method,
+    convolve,
+    kernel_spectrum,
+)
 from subslope.physics.light.pixelated import pixelated_light
 from subslope.physics.light.sersic import multi_sersic_from_magnitude, sersic_ellipse_from_magnitude
 from subslope.physics.pairs.epl import epl_table
 from subslope.physics.profiles.epl import theta_e_to_amp
-from subslope.physics.profiles.multipole import multipole_deflection
+from subslope.physics.profiles.multipole import multipole_deflections
 from subslope.physics.profiles.shear import shear_deflection
 from subslope.physics.raytrace import Plane, multi_plane_ray_shoot
 from subslope.ragged import pack_ragged
@@ -117,6 +122,9 @@ class _Batch:
     geometry: Geometry
     grid: tuple[Tensor, Tensor, int]
     sheet: tuple[str, str] = ("origin", "origin")
+    #: macro parameters of every image of the render call, converted once
+    #: (:meth:`par`), shared by its sub-batches
+    columns: dict = dataclasses.field(default_factory=dict)
 
     @property
     def size(self) -> int:
@@ -124,11 +132,17 @@ class _Batch:
 
     def par(self, key: str) -> Tensor:
         """Macro parameter ``key`` of the sub-batch, ``(b, 1)`` in the render dtype."""
-        return torch.as_tensor(
-            np.asarray(self.macro[key], dtype=np.float64)[self.idx],
-            dtype=self.settings.dtype,
-            device=self.device,
-        )[:, None]
+        col = self.columns.get(key)
+        if col is None:
+            col = self.columns[key] = torch.as_tensor(
+                np.asarray(self.macro[key], dtype=np.float64),
+                dtype=self.settings.dtype,
+                device=self.device,
+            )
+        lo, hi = int(self.idx[0]), int(self.idx[-1]) + 1
+        if hi - lo == self.idx.size:  # sub-batches are runs of consecutive images
+            return col[lo:hi, None]
+        return col[torch.as_tensor(self.idx, device=self.device)][:, None]
 
     def values(self, key: str) -> np.ndarray:
         """Macro parameter ``key`` of the sub-batch, ``(b,)`` float64."""
@@ -196,10 +210,15 @@ def _lens_plane(batch: _Batch, sub_pop: Population | None):
             ax, ay = ax + sx, ay + sy
         if mpole is not None:
             count_step("multipoles")
-            for m, a, phi in ((3, "a3", "phi3"), (4, "a4", "phi4")):
-                mx, my = multipole_deflection(
-                    tx, ty, m, mpole[a], mpole[phi], lens["lens_x"], lens["lens_y"]
-                )
+            for mx, my in multipole_deflections(
+                tx,
+                ty,
+                (3, 4),
+                (mpole["a3"], mpole["a4"]),
+                (mpole["phi3"], mpole["phi4"]),
+                lens["lens_x"],
+                lens["lens_y"],
+            ):
                 ax, ay = ax + mx, ay + my
         if sub_pop is not None:
             count_step("subhalos")
@@ -365,7 +384,9 @@ def _source_light(
     )
 
 
-def _observe(batch: _Batch, sb: Tensor, psf: Tensor, smooth: bool) -> Tensor:
+def _observe(
+    batch: _Batch, sb: Tensor, psf: Tensor, spectrum: KernelSpectrum | None, smooth: bool
+) -> Tensor:
     """Add the lens light, bin the sub-pixels, × pixel area and convolve with the PSF:
     ``(b, npix, npix)`` e⁻/s per pixel."""
     settings, par = batch.settings, batch.par
@@ -394,12 +415,21 @@ def _observe(batch: _Batch, sb: Tensor, psf: Tensor, smooth: bool) -> Tensor:
     img = img * (settings.pixel_scale**2)
     count_step("psf")
     return torch.cat(
-        [convolve(img[i : i + 1], psf, method=settings.convolution) for i in range(batch.size)], 0
+        [
+            convolve(img[i : i + 1], psf, method=settings.convolution, spectrum=spectrum)
+            for i in range(batch.size)
+        ],
+        0,
     )
 
 
 def _render_group(
-    batch: _Batch, psf: Tensor, sources: PixelatedSources | None, subhalos, los, smooth: bool
+    batch: _Batch,
+    psf: tuple[Tensor, KernelSpectrum | None],
+    sources: PixelatedSources | None,
+    subhalos,
+    los,
+    smooth: bool,
 ) -> Tensor:
     """The images of one sub-batch: trace the rays through the planes, then observe."""
     zl, zs = batch.values("z_lens"), batch.values("z_source")
@@ -408,7 +438,7 @@ def _render_group(
     bx, by = _trace(batch, planes, lens_plane, zs)
     n_ss = (batch.settings.npix * batch.settings.supersample) ** 2
     sb = _source_light(batch, bx[:, :n_ss], by[:, :n_ss], sources)
-    return _observe(batch, sb, psf, smooth)
+    return _observe(batch, sb, *psf, smooth)
 
 
 def _check_populations(n: int, subhalos, los) -> None:
@@ -467,14 +497,19 @@ def _render(
     _check_populations(n, subhalos, los)
     device = pick_device(settings.device, key="simulation.render.device")
     psf_t = torch.as_tensor(psf).to(dtype=settings.dtype, device=device)
+    if psf_t.ndim != 2:
+        raise ValueError(f"psf must be a 2-D kernel, got shape {tuple(psf_t.shape)}")
+    fft = convolution_method(settings.convolution, psf_t.shape, device) == "fft"
+    spectrum = kernel_spectrum(psf_t, (settings.npix, settings.npix)) if fft else None
     xg, yg, geometry = _points(settings, device)
     kernels = kernels_for(settings, device)
     grid = (xg, yg, settings.npix**2)
+    columns: dict[str, Tensor] = {}
     with torch.no_grad():
         out = [
             _render_group(
-                _Batch(g, macro, settings, device, kernels, geometry, grid, sheet),
-                psf_t,
+                _Batch(g, macro, settings, device, kernels, geometry, grid, sheet, columns),
+                (psf_t, spectrum),
                 sources,
                 subhalos,
                 los,

@@ -26,34 +26,61 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["R_MIN", "multipole_deflection", "multipole_convergence", "multipole_potential"]
+__all__ = [
+    "R_MIN",
+    "multipole_deflection",
+    "multipole_deflections",
+    "multipole_convergence",
+    "multipole_potential",
+]
 
 R_MIN = 1e-9
 
 
-def _prep(x, y, m, a_m, phi_m, cx, cy, r_min):
+def _check(x, m, r_min) -> None:
     if not isinstance(x, Tensor) or not torch.is_floating_point(x):
         raise ValueError(f"x must be a floating-point torch.Tensor, got {type(x).__name__}")
     if not isinstance(m, int) or isinstance(m, bool) or m < 2:
         raise ValueError(f"m must be an int >= 2 (multipole order); got {m!r}")
     if not (isinstance(r_min, (int, float)) and r_min > 0):
         raise ValueError(f"r_min must be a float > 0 (arcsec); got {r_min!r}")
-    a_m, phi_m, cx, cy = (
-        v if isinstance(v, Tensor) else torch.as_tensor(v, dtype=x.dtype, device=x.device)
-        for v in (a_m, phi_m, cx, cy)
-    )
+
+
+def _tensor(v, x: Tensor) -> Tensor:
+    return v if isinstance(v, Tensor) else torch.as_tensor(v, dtype=x.dtype, device=x.device)
+
+
+def _frame(x, y, cx, cy, r_min):
+    """``dx, dy, r², 1/r`` and ``e^{iθ}`` about the centre."""
+    cx, cy = _tensor(cx, x), _tensor(cy, x)
     dx, dy = x - cx, y - cy
     r2 = torch.clamp(dx * dx + dy * dy, min=r_min * r_min)
     inv_r = torch.rsqrt(r2)
-    ur, ui = dx * inv_r, dy * inv_r  # e^{i theta}
+    return dx, dy, r2, inv_r, dx * inv_r, dy * inv_r
+
+
+def _angular(pr, pi, m, phi_m):
+    """``cos m(θ − φ_m), sin m(θ − φ_m)`` from ``e^{imθ} = pr + i·pi``."""
+    cm, sm = torch.cos(m * phi_m), torch.sin(m * phi_m)
+    return pr * cm + pi * sm, pi * cm - pr * sm
+
+
+def _prep(x, y, m, a_m, phi_m, cx, cy, r_min):
+    _check(x, m, r_min)
+    a_m, phi_m = _tensor(a_m, x), _tensor(phi_m, x)
+    dx, dy, r2, inv_r, ur, ui = _frame(x, y, cx, cy, r_min)
     pr, pi = ur, ui
     for _ in range(m - 1):  # e^{i m theta}
         pr, pi = pr * ur - pi * ui, pr * ui + pi * ur
-    cm, sm = torch.cos(m * phi_m), torch.sin(m * phi_m)
-    # cos m(theta - phi_m), sin m(theta - phi_m)
-    cos_m = pr * cm + pi * sm
-    sin_m = pi * cm - pr * sm
+    cos_m, sin_m = _angular(pr, pi, m, phi_m)
     return a_m, dx, dy, r2, inv_r, ur, ui, cos_m, sin_m
+
+
+def _deflection(ur, ui, m, a_m, cos_m, sin_m):
+    k = a_m / (1 - m * m)
+    a_r = k * cos_m
+    a_t = -(m * k) * sin_m
+    return ur * a_r - ui * a_t, ui * a_r + ur * a_t
 
 
 def multipole_deflection(
@@ -73,10 +100,31 @@ def multipole_deflection(
     + cos(theta) alpha_theta, see the module docstring. All arguments broadcast.
     """
     a_m, dx, dy, r2, inv_r, ur, ui, cos_m, sin_m = _prep(x, y, m, a_m, phi_m, cx, cy, r_min)
-    k = a_m / (1 - m * m)
-    a_r = k * cos_m
-    a_t = -(m * k) * sin_m
-    return ur * a_r - ui * a_t, ui * a_r + ur * a_t
+    return _deflection(ur, ui, m, a_m, cos_m, sin_m)
+
+
+def multipole_deflections(
+    x, y, orders, a_ms, phi_ms, cx=0.0, cy=0.0, *, r_min: float = R_MIN
+) -> list[tuple[Tensor, Tensor]]:
+    """Deflections ``[(alpha_x, alpha_y), ...]`` of several multipoles about one centre,
+    one per order of ``orders`` (increasing ints >= 2), with strengths ``a_ms`` and
+    orientations ``phi_ms``: each equal bit for bit to :func:`multipole_deflection` of
+    that order, the frame ``e^{iθ}`` and its powers computed once for all of them."""
+    orders = list(orders)
+    if any(b <= a for a, b in zip(orders, orders[1:])):
+        raise ValueError(f"orders must increase, got {orders!r}")
+    for m in orders:
+        _check(x, m, r_min)
+    dx, dy, r2, inv_r, ur, ui = _frame(x, y, cx, cy, r_min)
+    out = []
+    pr, pi, power = ur, ui, 1
+    for m, a_m, phi_m in zip(orders, a_ms, phi_ms):
+        while power < m:  # e^{i m theta}, the same recursion as for one order
+            pr, pi = pr * ur - pi * ui, pr * ui + pi * ur
+            power += 1
+        cos_m, sin_m = _angular(pr, pi, m, _tensor(phi_m, x))
+        out.append(_deflection(ur, ui, m, _tensor(a_m, x), cos_m, sin_m))
+    return out
 
 
 def multipole_convergence(
