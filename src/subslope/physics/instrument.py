@@ -343,23 +343,21 @@ def convolve(
 ) -> torch.Tensor:
     """Convolve ``images`` (..., H, W) with a 2-D odd ``kernel``; 'same' size, zero padding.
 
-    ``method``: 'direct' (``conv2d``), 'fft' (``torch.fft``, both padded to
+    ``method``: 'direct' (``conv2d``), 'fft' (``torch.fft``, padded to
     :func:`fft_size`) or 'auto' (FFT on CPU; elsewhere direct when the kernel side is
     ≤ ``DIRECT_MAX_KERNEL``). The kernel follows the images' dtype/device.
     ``spectrum``: the kernel's :func:`kernel_spectrum` for these images (same dtype and
     device), so that a renderer transforms its PSF once, not once per image.
     """
-    if method not in ("auto", "direct", "fft"):
-        raise ValueError(f"method must be 'auto', 'direct' or 'fft', got {method!r}")
     if images.ndim < 2:
         raise ValueError(f"images must have at least 2 dimensions, got shape {tuple(images.shape)}")
     kernel = torch.as_tensor(kernel).to(dtype=images.dtype, device=images.device)
     _check_kernel(kernel)
     kh, kw = kernel.shape
+    method = convolution_method(method, (kh, kw), images.device)
     h, w = images.shape[-2:]
     lead = images.shape[:-2]
     x = images.reshape(-1, 1, h, w)
-    method = convolution_method(method, (kh, kw), images.device)
     if method == "direct":
         weight = torch.flip(kernel, (0, 1))[None, None]
         out = F.conv2d(x, weight, padding=(kh // 2, kw // 2))

@@ -497,8 +497,6 @@ def _render(
     _check_populations(n, subhalos, los)
     device = pick_device(settings.device, key="simulation.render.device")
     psf_t = torch.as_tensor(psf).to(dtype=settings.dtype, device=device)
-    if psf_t.ndim != 2:
-        raise ValueError(f"psf must be a 2-D kernel, got shape {tuple(psf_t.shape)}")
     fft = convolution_method(settings.convolution, psf_t.shape, device) == "fft"
     spectrum = kernel_spectrum(psf_t, (settings.npix, settings.npix)) if fft else None
     xg, yg, geometry = _points(settings, device)
