@@ -2,8 +2,6 @@
 
 import logging
 
-import torch
-
 from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
 from subslope.stages.simulate import simulate_shard_job
@@ -11,7 +9,6 @@ from subslope.stages.simulate import simulate_shard_job
 log_to_file(snakemake.log[0])
 try:
     verify_files(list(snakemake.input))  # the data files as fetched, or a clear error
-    torch.set_num_threads(snakemake.threads)
     multiplier = snakemake.wildcards.get("multiplier")
     simulate_shard_job(
         snakemake.params.job,
@@ -20,6 +17,7 @@ try:
         int(snakemake.wildcards.shard),
         snakemake.output.h5,
         multiplier=None if multiplier is None else float(multiplier),
+        threads=snakemake.threads,
     )
 except Exception:
     logging.exception("simulate_shard failed")

@@ -315,20 +315,33 @@ def _read_table(
         return {c: np.array(data[c]) for c in have}
 
 
-def _stamp_shape(path: Path, hdu: int) -> tuple[int, int]:
+@lru_cache(maxsize=256)
+def _image_file(path: str) -> fits.HDUList:
+    """The COSMOS image file ``path``, opened once per process (read-only): astropy
+    indexes a file's HDUs as they are first reached, so the stamps of a file cost one
+    pass over its headers however many are read (opening it per stamp cost a pass per
+    stamp)."""
+    return fits.open(path, memmap=False, lazy_load_hdus=True)
+
+
+def _hdu(path: Path, hdu: int) -> fits.hdu.base.ExtensionHDU:
     if not path.is_file():
         raise CosmosError(f"COSMOS image file not found: {path}")
-    with fits.open(path) as hdul:
-        if hdu >= len(hdul):
-            raise CosmosError(f"{path} has {len(hdul)} HDUs, catalogue asks for HDU {hdu}")
-        header = hdul[hdu].header
-        return int(header["NAXIS2"]), int(header["NAXIS1"])
+    hdul = _image_file(str(path))
+    try:
+        return hdul[hdu]
+    except IndexError:
+        raise CosmosError(f"{path} has {len(hdul)} HDUs, catalogue asks for HDU {hdu}") from None
+
+
+def _stamp_shape(path: Path, hdu: int) -> tuple[int, int]:
+    header = _hdu(path, hdu).header
+    return int(header["NAXIS2"]), int(header["NAXIS1"])
 
 
 @lru_cache(maxsize=4096)
 def _read_stamp(path: str, hdu: int) -> np.ndarray:
-    with fits.open(path) as hdul:
-        data = np.asarray(hdul[hdu].data, dtype=np.float64)
+    data = np.array(_hdu(Path(path), hdu).data, dtype=np.float64)
     if data.ndim != 2 or not np.all(np.isfinite(data)):
         raise CosmosError(f"{path}[{hdu}] is not a finite 2-D image")
     data.setflags(write=False)

@@ -74,12 +74,12 @@ class SceneError(PriorError):
 def _load_presets() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     from importlib import resources as importlib_resources
 
-    import yaml
+    from subslope.config import safe_load_yaml
 
     text = (importlib_resources.files("subslope") / "schemas" / "scene_presets.yaml").read_text(
         encoding="utf-8"
     )
-    doc = yaml.safe_load(text)
+    doc = safe_load_yaml(text)
     return doc["paper_scene"], doc["presets"], doc["lens_light_priors"]
 
 

@@ -1,6 +1,10 @@
 """Stage ``simulate``: image shards, the whitening statistics of the training shards and
 the scene example figures (rules simulate_shard, simulate_cdm_shard, compute_whitening,
-plot_scene_examples)."""
+plot_scene_examples).
+
+The renderer, the estimator's whitening and the figures are imported by the functions
+that use them: a shard job that finds its shard in the cache never loads torch.
+"""
 
 from __future__ import annotations
 
@@ -11,13 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from subslope.config import RUN_ONLY_RENDER_KEYS, config_hash
-from subslope.figures.data import plot_scene_examples_from_shard
 from subslope.io.shard_cache import code_digest, put_in_cache, take_from_cache
 from subslope.io.shards import FORMAT_VERSION
-from subslope.nre.whitening import compute_whitening
-from subslope.render.kernels import use_compile_cache
 from subslope.simulation.resolve import simulation_sections
-from subslope.simulation.shard import simulate_shard
 
 __all__ = [
     "simulate_shard",
@@ -50,6 +50,27 @@ def shard_cache_key(
     )
 
 
+def simulate_shard(config: Mapping[str, Any], scene: str, shard: int, out_path, **kwargs) -> Path:
+    """:func:`subslope.simulation.shard.simulate_shard`."""
+    from subslope.simulation.shard import simulate_shard as simulate
+
+    return simulate(config, scene, shard, out_path, **kwargs)
+
+
+def compute_whitening(*args, **kwargs):
+    """:func:`subslope.nre.whitening.compute_whitening`."""
+    from subslope.nre.whitening import compute_whitening as whitening
+
+    return whitening(*args, **kwargs)
+
+
+def plot_scene_examples_from_shard(*args, **kwargs):
+    """:func:`subslope.figures.data.plot_scene_examples_from_shard`."""
+    from subslope.figures.data import plot_scene_examples_from_shard as plot
+
+    return plot(*args, **kwargs)
+
+
 def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str, Any]:
     """The config a job of ``scene`` simulates with: its resolved sections ``job``
     (:func:`subslope.stages.plan.shard_job_config`) plus, from the workflow's config ``run``,
@@ -59,6 +80,8 @@ def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str,
     config["data"] = copy.deepcopy(run["data"])
     render = run["simulation"]["render"]
     config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
+    from subslope.render.kernels import use_compile_cache
+
     use_compile_cache(render.get("compile_cache"))
     return config
 
@@ -71,17 +94,23 @@ def simulate_shard_job(
     out_path: str | os.PathLike[str],
     *,
     multiplier: float | None = None,
+    threads: int | None = None,
 ) -> Path:
     """One shard job of the workflow: ``job`` is its resolved configuration
     (:func:`subslope.stages.plan.shard_job_config`, the rule's params); ``run`` the
     workflow's config, from which only the values that must not rerun a finished shard
     are taken (:func:`runnable_config`; ``simulation.shard_cache``: a shard of the same
-    key there is taken instead of simulated, and a new one is put there)."""
-    config = runnable_config(job, run)
+    key there is taken instead of simulated, and a new one is put there); ``threads``:
+    torch's CPU threads while simulating."""
     cache = run["simulation"].get("shard_cache")
     key = shard_cache_key(job, scene, shard, multiplier) if cache else ""
     if cache and take_from_cache(cache, scene, key, out_path):
         return Path(out_path)
+    config = runnable_config(job, run)
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(int(threads))
     # The workflow keeps the previous shard in place while its job runs (Snakemake's
     # update(): put back if the job fails); the new one replaces it atomically.
     path = simulate_shard(
