@@ -55,6 +55,13 @@ wildcard_constraints:
     multiplier=r"[0-9]+(\.[0-9]+)?(e[-+]?[0-9]+)?",
 
 
+# `serial` (a unit per grouped shard or profile job) is counted within one cluster job
+# only: profiles/slurm allows one at a time, so a group's members run one after another
+# and the group asks for the sum of their wall times (workflow/rules/common.smk).
+resource_scopes:
+    serial="local",
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/data.smk"
 include: "workflow/rules/gallery.smk"

@@ -9,10 +9,12 @@
 #    (CPUs and memory from `slurmd -C`; no accounting, so job states come from squeue);
 # 2. starts munged, slurmctld and slurmd, and stops, on every exit, the daemons it started;
 # 3. checks that a GPU request is refused before any job on this cluster without GPUs;
-# 4. runs the tiny campaign locally and through the profile at the same time, cancels the
-#    training job once while it runs on SLURM (the profile's retries resubmit it and it
-#    resumes from its checkpoint), and compares the two results folders with
-#    benchmarks/compare_runs.py.
+# 4. runs the tiny campaign locally and through the profile at the same time, its shard
+#    and profile jobs bundled into groups (config/tiny.yaml: cluster.group_size), cancels
+#    the training job once while it runs on SLURM (the profile's retries resubmit it and
+#    it resumes from its checkpoint), checks that SLURM ran as many jobs as
+#    `subslope cluster-jobs` counts in the dry run (plus the resubmission), and compares
+#    the two results folders with benchmarks/compare_runs.py.
 #
 # Knobs: SLURM_CI_DIR (work folder, default a new temporary one), SLURM_CI_KEEP=1 keeps it.
 set -euo pipefail
@@ -126,6 +128,10 @@ grep -q "config key training.gpus = 1: the SLURM cluster offers no GPU" "$WORK/g
 [ -z "$(squeue -h)" ] || { say "jobs were submitted for a refused config"; exit 1; }
 say "GPU request refused before any job"
 
+predicted=$(cd "$WORK/slurm" && "$REPO/.venv/bin/subslope" cluster-jobs --total -- \
+    --profile profiles/slurm --configfile config/tiny.yaml)
+say "the dry run counts $predicted cluster jobs"
+
 (cd "$WORK/local" && "$SNAKEMAKE" --cores 1 --configfile config/tiny.yaml \
     >"$WORK/local.log" 2>&1) &
 local_pid=$!
@@ -157,6 +163,10 @@ if [ -f "$WORK/cancelled" ]; then
 else
     say "training finished before it could be cancelled"
 fi
+submitted=$(grep -c . "$STATE/log/jobcomp.txt")
+expected=$(( predicted + $([ -f "$WORK/cancelled" ] && echo 1 || echo 0) ))
+say "SLURM ran $submitted jobs; the dry run's count (and a resubmission) gives $expected"
+[ "$submitted" = "$expected" ] || { say "job count differs from the dry run's"; exit 1; }
 
 "$PY" "$REPO/benchmarks/compare_runs.py" "$WORK/local/results" "$WORK/slurm/results" \
     >"$WORK/compare.log" 2>&1 || {

@@ -35,6 +35,7 @@ SHIPPED_DEVIATIONS = {
     ("null_tests", "scenes"),
     ("systematics", "variants"),
     ("systematics", "common"),
+    ("cluster", "group_size"),
 }
 
 #: The null-test scenes of config/config.yaml: the test sets without subhalos.

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from subslope import config as cfgmod
+from subslope.stages.plan import count_cluster_jobs, host_rules
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")
@@ -98,3 +99,59 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
         "write_summary",
     ):
         assert stats[rule] == 1, rule
+    # the cluster jobs: shard and profile jobs bundled by cluster.group_size
+    jobs = count_cluster_jobs(proc.stdout, host_rules(tmp_path))
+    size = cfg["cluster"]["group_size"]
+    kinds = {"simulate": ("simulate_shard", "simulate_cdm_shard"),
+             "evaluate": ("evaluate_profiles", "evaluate_cdm_profiles")}  # fmt: skip
+    for kind, rules in kinds.items():
+        grouped = sum(n for key, n in jobs.items() if key.startswith(f"group {kind}:"))
+        assert grouped == -(-sum(stats[r] for r in rules) // size[kind]), kind
+        assert not any(r in jobs for r in rules)
+    assert "fetch_data" not in jobs and "all" not in jobs  # on the submitting host
+    assert sum(jobs.values()) <= 500, jobs
+
+
+def _group_members(dry_run: str) -> dict[str, int]:
+    """Members of each group in a dry run (its header is printed once per member)."""
+    members: dict[str, int] = {}
+    for line in dry_run.splitlines():
+        if "] Group job " in line:
+            name = line.split("] Group job ")[1].split()[0]
+            members[name] = members.get(name, 0) + 1
+    return members
+
+
+def test_count_cluster_jobs_of_a_dry_run():
+    text = "\n".join([
+        "rule fetch_data:", "    output: a",
+        "[Thu Dec  3 13:13:57 2026] Group job simulate_0 (jobs in lexicogr. order):", "",
+        "    rule simulate_shard:", "        output: s0",
+        "[Thu Dec  3 13:13:57 2026] Group job simulate_0 (jobs in lexicogr. order):", "",
+        "    rule simulate_cdm_shard:", "        output: s1",
+        "rule train_estimator:", "    output: m",
+        "[Thu Dec  3 13:13:57 2026] Group job simulate_1 (jobs in lexicogr. order):", "",
+        "    rule simulate_shard:", "        output: s2",
+        "rule all:", "    input: m",
+    ])  # fmt: skip
+    jobs = count_cluster_jobs(text, {"fetch_data", "all"})
+    assert jobs == {
+        "train_estimator": 1,
+        "group simulate: simulate_cdm_shard, simulate_shard": 1,
+        "group simulate: simulate_shard": 1,
+    }
+    assert host_rules(REPO) == {"all", "fetch_data"}
+
+
+@pytest.mark.slow
+def test_tiny_groups_through_the_slurm_profile(workdir, data_dir):
+    pytest.importorskip("snakemake_executor_plugin_slurm", reason="pip install -e '.[slurm]'")
+    env = dict(os.environ, SUBSLOPE_DATA_MIRROR=str(data_dir), OMP_NUM_THREADS="1")
+    argv = ["-n", "--profile", "profiles/slurm", "--configfile", "config/tiny.yaml"]
+    proc = subprocess.run([str(SNAKEMAKE), *argv], cwd=workdir, env=env, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    # tiny.yaml: 8 shard jobs in groups of 4, 6 profile jobs in groups of 3
+    assert _group_members(proc.stdout) == {
+        "simulate_0": 4, "simulate_1": 4, "evaluate_0": 3, "evaluate_1": 3
+    }  # fmt: skip

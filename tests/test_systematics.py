@@ -221,19 +221,47 @@ def test_the_table_has_one_row_per_variant_from_its_summary(systematics_run):
     assert table.set_index("variant").loc["realism", "changes"] == "none"
 
 
+def _files(results: Path) -> dict[Path, Path]:
+    return {p.relative_to(results): p for p in _shards(results)}
+
+
 def test_variants_share_the_shards_they_do_not_alter(systematics_run, tiny_run):
     variants = systematics_run["out"] / "variants"
-    own = {p.relative_to(tiny_run): os.stat(p).st_ino for p in _shards(tiny_run)}
-    realism = {p.relative_to(variants / "realism" / "results"): os.stat(p).st_ino
-               for p in _shards(variants / "realism" / "results")}  # fmt: skip
-    assert realism == own  # every shard of realism is the tiny campaign's file
-    sheet = {p.relative_to(variants / "sheet_origin" / "results"): os.stat(p).st_ino
-             for p in _shards(variants / "sheet_origin" / "results")}  # fmt: skip
-    same = {str(p) for p in sheet if sheet[p] == own[p]}
+    own = _files(tiny_run)
+    realism = _files(variants / "realism" / "results")
+    assert realism.keys() == own.keys()
+    for rel, path in realism.items():  # every shard of realism is the tiny campaign's
+        assert path.read_bytes() == own[rel].read_bytes(), rel
+        # as a file of its own: Snakemake touches the variant's outputs
+        assert not os.path.samefile(path, own[rel]), rel
+    logs = variants / "realism" / "logs" / "simulate_shard"
+    assert all("taken from the cache" in p.read_text() for p in logs.rglob("*.log"))
+    sheet = _files(variants / "sheet_origin" / "results")
+    same = {str(p) for p in sheet if sheet[p].read_bytes() == own[p].read_bytes()}
     assert same == {"simulate_shard/null_nosub/shard_0.h5"}  # no subhalos, no LoS
     logs = variants / "sheet_origin" / "logs" / "simulate_shard"
     assert "taken from the cache" in (logs / "null_nosub" / "shard_0.log").read_text()
     assert "taken from the cache" not in (logs / "train" / "shard_0.log").read_text()
+    # the same fits of the HST lens light, taken from the cache
+    fits = "fit_lens_light/lens_light_fits.csv"
+    for variant in ("realism", "sheet_origin"):
+        assert (variants / variant / "results" / fits).read_text() == (tiny_run / fits).read_text()
+        log = (variants / variant / "logs" / "fit_lens_light.log").read_text()
+        assert "taken from the cache" in log, variant
+
+
+def test_the_campaign_has_nothing_to_do_after_its_variants(systematics_run, tiny_run, data_dir):
+    """The variants' runs leave the campaign's files as they were: its next run, judging
+    by modification times alone (as Snakemake does for files above its 1 MB checksum
+    limit, i.e. every shard of a real campaign), does nothing."""
+    proc = subprocess.run(
+        [str(Path(sys.executable).with_name("snakemake")), "-n", "--configfile",
+         "config/tiny.yaml", "--max-checksum-file-size", "1"],
+        cwd=tiny_run.parent, env=systematics_run["env"], capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Nothing to be done" in proc.stdout + proc.stderr, proc.stdout[-3000:]
 
 
 def test_a_second_call_reruns_nothing(systematics_run):

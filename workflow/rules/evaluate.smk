@@ -13,6 +13,8 @@ rule evaluate_profiles:
         "logs/evaluate_profiles/{scene}/shard_{shard}.log",
     benchmark:
         "results/benchmarks/evaluate_profiles/{scene}/shard_{shard}.tsv"
+    group:
+        lambda wildcards: job_group("evaluate", wildcards)
     conda:
         "../envs/subslope.yaml"
     threads: config["inference"]["threads"]
@@ -20,6 +22,7 @@ rule evaluate_profiles:
         mem_mb=2000,
         runtime=60,
         gpu=config["inference"]["gpus"],
+        serial=1,
     params:
         gamma_grid=GRID,
         batch_size=config["inference"]["batch_size"],

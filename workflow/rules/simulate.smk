@@ -15,12 +15,15 @@ rule simulate_shard:
         "logs/simulate_shard/{scene}/shard_{shard}.log",
     benchmark:
         "results/benchmarks/simulate_shard/{scene}/shard_{shard}.tsv"
+    group:
+        lambda wildcards: job_group("simulate", wildcards)
     conda:
         "../envs/subslope.yaml"
     threads: 1
     resources:
         mem_mb=4000,
         runtime=120,
+        serial=1,
     params:
         # The resolved values that determine this shard's images: a change of any of
         # them reruns the job, and nothing else does (subslope.stages.plan.shard_job_config).

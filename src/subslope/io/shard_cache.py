@@ -1,4 +1,4 @@
-"""A folder of finished shards keyed by what determines their images.
+"""A folder of finished shards (and other results) keyed by what determines them.
 
 Campaigns that differ in a few simulator choices (the systematics variants) share most
 of what they simulate only where a choice does not reach: a shard of a scene that a
@@ -8,32 +8,50 @@ shard once, as ``<folder>/<scene>/<key>.h5``; the key (computed by
 depend on, so a key that is present is the shard the job would write.
 
 A cached file is used only after :func:`subslope.io.shards.verify_shard` has read every
-chunk against its checksum; a bad one is removed and the shard simulated again. Files
-enter the cache and leave it as hard links where the two folders share a file system
-(no second copy on disk; the shard writers never write into an existing file, so a link
-cannot be changed through the other name), else as copies, always through a temporary
-name beside the target.
+chunk against its checksum; a bad one is removed and the shard simulated again. A file
+enters the cache as a hard link of the campaign's own result where the two folders
+share a file system (no second copy on disk; the writers never write into an existing
+file, so a link cannot be changed through the other name), else as a copy. It leaves
+the cache as a copy of its own (a reflink, sharing the blocks, on file systems that
+offer one: btrfs, XFS), never as a second name of the file another campaign holds:
+Snakemake touches every output after its job, and through a shared inode a variant's
+run would make the shards of the campaign it shares them with newer than that
+campaign's whitening, model and profiles, which its next run would then redo. Both go
+through a temporary name beside the target.
+
+Results other than shards (the HST lens-light fits) are kept the same way, as a folder
+``<folder>/_<kind>/<key>/`` of files and a ``manifest.json`` of their SHA-256 written
+last: an entry without its manifest, or whose files do not match it, is removed and the
+result computed again. Scene names start with a letter, so ``_<kind>`` never meets a
+scene's folder.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import shutil
+from collections.abc import Mapping
 from functools import lru_cache
 from pathlib import Path
 
-from subslope.io.atomic import temporary_path
-from subslope.io.shards import ShardError, verify_shard
+from subslope.io.atomic import atomic_write, temporary_path, write_text
+from subslope.io.shards import ShardError, file_sha256, verify_shard
 
 __all__ = [
     "CODE_PARTS",
+    "MANIFEST",
     "code_digest",
     "cached_path",
+    "cached_entry",
     "take_from_cache",
     "put_in_cache",
+    "take_files_from_cache",
+    "put_files_in_cache",
     "link_or_copy",
+    "clone_or_copy",
 ]
 
 log = logging.getLogger(__name__)
@@ -54,14 +72,19 @@ CODE_PARTS = (
 )
 
 
-@lru_cache(maxsize=1)
-def code_digest() -> str:
-    """SHA-256 over the files of :data:`CODE_PARTS` (relative path and bytes, sorted):
-    a change to the code that makes shards invalidates every cached shard, while one to
-    the estimator, the statistics, the figures or the stages does not."""
+#: The file that lists the files of a non-shard entry and their SHA-256.
+MANIFEST = "manifest.json"
+
+
+@lru_cache(maxsize=4)
+def code_digest(parts: tuple[str, ...] = CODE_PARTS) -> str:
+    """SHA-256 over the files of ``parts`` (package-relative folders or files; relative
+    path and bytes, sorted): with :data:`CODE_PARTS`, a change to the code that makes
+    shards invalidates every cached shard, while one to the estimator, the statistics,
+    the figures or the stages does not."""
     root = Path(__file__).resolve().parents[1]
     files: list[Path] = []
-    for part in CODE_PARTS:
+    for part in parts:
         path = root / part
         files += sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     digest = hashlib.sha256()
@@ -97,6 +120,24 @@ def link_or_copy(source: str | os.PathLike[str], target: str | os.PathLike[str])
     return target
 
 
+#: Linux ioctl FICLONE: make a file share another's blocks (copy on write).
+_FICLONE = 0x40049409
+
+
+def clone_or_copy(source: str | os.PathLike[str], target: str | os.PathLike[str]) -> Path:
+    """Put a file of its own with the bytes of ``source`` at ``target`` (replacing it):
+    a reflink where the file system offers one, else a copy; atomic at ``target``."""
+    target = Path(target)
+    with atomic_write(target) as tmp, open(source, "rb") as src, open(tmp, "wb") as dst:
+        try:
+            import fcntl
+
+            fcntl.ioctl(dst.fileno(), _FICLONE, src.fileno())
+        except (ImportError, OSError):
+            shutil.copyfileobj(src, dst, 1 << 20)
+    return target
+
+
 def take_from_cache(
     folder: str | os.PathLike[str], scene: str, key: str, out_path: str | os.PathLike[str]
 ) -> bool:
@@ -111,7 +152,7 @@ def take_from_cache(
         log.warning("removing a corrupt cached shard: %s", exc)
         path.unlink(missing_ok=True)
         return False
-    link_or_copy(path, out_path)
+    clone_or_copy(path, out_path)
     log.info("shard taken from the cache %s", path)
     return True
 
@@ -123,3 +164,55 @@ def put_in_cache(
     path = link_or_copy(shard_path, cached_path(folder, scene, key))
     log.info("shard put in the cache %s", path)
     return path
+
+
+def cached_entry(folder: str | os.PathLike[str], kind: str, key: str) -> Path:
+    """The folder of the ``kind`` entry of ``key`` in the cache ``folder``."""
+    return Path(folder) / f"_{kind}" / key
+
+
+def take_files_from_cache(
+    folder: str | os.PathLike[str],
+    kind: str,
+    key: str,
+    outputs: Mapping[str, str | os.PathLike[str]],
+) -> bool:
+    """Put the cached files of ``key`` at ``outputs`` (file name in the entry → target)
+    and return True; False when the cache has no complete entry (an entry whose files do
+    not match its manifest is removed)."""
+    entry = cached_entry(folder, kind, key)
+    manifest = entry / MANIFEST
+    if not manifest.is_file():
+        return False
+    try:
+        listed = json.loads(manifest.read_text())
+        good = set(listed) == set(outputs) and all(
+            file_sha256(entry / name) == listed[name] for name in outputs
+        )
+    except (OSError, ValueError):
+        good = False
+    if not good:
+        log.warning("removing a %s cache entry that does not match its manifest: %s", kind, entry)
+        shutil.rmtree(entry, ignore_errors=True)
+        return False
+    for name, target in outputs.items():
+        clone_or_copy(entry / name, target)
+    log.info("%s taken from the cache %s", kind, entry)
+    return True
+
+
+def put_files_in_cache(
+    folder: str | os.PathLike[str],
+    kind: str,
+    key: str,
+    outputs: Mapping[str, str | os.PathLike[str]],
+) -> Path:
+    """Enter the finished files ``outputs`` (file name in the entry → file) under ``key``;
+    the manifest is written last, so an interrupted entry is never taken."""
+    entry = cached_entry(folder, kind, key)
+    for name, source in outputs.items():
+        link_or_copy(source, entry / name)
+    listed = {name: file_sha256(entry / name) for name in outputs}
+    write_text(entry / MANIFEST, json.dumps(listed, indent=1, sort_keys=True) + "\n")
+    log.info("%s put in the cache %s", kind, entry)
+    return entry

@@ -4,7 +4,9 @@ check_domain; ``subslope domain-check``).
 - :func:`fit_hst_lens_light`: the PSF-convolved Sérsic fit of every HST lens's light
   (arcs masked) and the lens-light prior that covers the fits
   (:func:`subslope.physics.light.fit.prior_from_fits`), beside the shipped ``hst_fits``
-  preset;
+  preset; :func:`fit_hst_lens_light_job` takes them from the cache
+  (``simulation.shard_cache``) where a campaign (a systematics variant) already made
+  them from the same files, settings and code (:func:`lens_light_fit_key`);
 - :func:`check_domain`: the statistics of :mod:`subslope.validation.domain` over the first
   ``domain.n_images`` images of a scene's shards and over the 13 HST cutouts, each lens's
   percentile in the simulated distribution, the figures, and the COSMOS source table
@@ -23,16 +25,31 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from subslope.config import config_hash
 from subslope.figures.domain import domain_gallery, domain_histograms
 from subslope.figures.save import save_figure
 from subslope.io.atomic import write_text
 from subslope.io.observations import find_lens_centre, load_hst
-from subslope.io.shards import open_shard
+from subslope.io.shard_cache import (
+    CODE_PARTS,
+    code_digest,
+    put_files_in_cache,
+    take_files_from_cache,
+)
+from subslope.io.shards import file_sha256, open_shard
 from subslope.physics.light.fit import fit_lens_light, prior_from_fits
 from subslope.simulation.observing import build_instrument, build_psf
 from subslope.validation.domain import STATISTICS, domain_percentiles, image_statistics
 
-__all__ = ["fit_hst_lens_light", "check_domain", "domain_check_cli", "shard_images"]
+__all__ = [
+    "fit_hst_lens_light",
+    "fit_hst_lens_light_job",
+    "lens_light_fit_key",
+    "LENS_LIGHT_FILES",
+    "check_domain",
+    "domain_check_cli",
+    "shard_images",
+]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +106,47 @@ def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior
             "the shipped hst_fits lens-light prior differs from the one derived now: %s",
             derived,
         )
+    return table
+
+
+#: The files of a lens-light fit in the cache (kind ``lens_light``), by output.
+LENS_LIGHT_FILES = {"csv": "lens_light_fits.csv", "prior": "lens_light_prior.yaml"}
+
+
+def lens_light_fit_key(config: Mapping[str, Any], hst_folder: str | os.PathLike[str]) -> str:
+    """Cache key of the HST lens-light fits: SHA-256 of what they depend on: the bytes
+    of every file of ``hst_folder`` and of the PSF file, the ``instrument`` section, the
+    lens-centre settings (``hst.lens_centre``) and the code that draws, reads and fits
+    (:data:`subslope.io.shard_cache.CODE_PARTS` and this module)."""
+    folder = Path(hst_folder)
+    files = {p.name: file_sha256(p) for p in sorted(folder.iterdir()) if p.is_file()}
+    psf = config["instrument"]["psf"]
+    if psf["source"] != "gaussian":
+        files["psf"] = file_sha256(Path(config["data"]["resources_dir"]) / psf["file"])
+    return config_hash(
+        {
+            "files": files,
+            "instrument": config["instrument"],
+            "lens_centre": config["hst"]["lens_centre"],
+            "code": code_digest((*CODE_PARTS, "stages/domain.py")),
+        }
+    )
+
+
+def fit_hst_lens_light_job(
+    config: Mapping[str, Any], hst_folder, out_csv, out_prior
+) -> pd.DataFrame:
+    """Rule fit_lens_light: :func:`fit_hst_lens_light`, or its files from the cache
+    ``simulation.shard_cache`` (kind ``lens_light``) where they are there for
+    :func:`lens_light_fit_key`; a new fit is put there. Returns the fits table."""
+    cache = config["simulation"].get("shard_cache")
+    outputs = {LENS_LIGHT_FILES["csv"]: out_csv, LENS_LIGHT_FILES["prior"]: out_prior}
+    key = lens_light_fit_key(config, hst_folder) if cache else ""
+    if cache and take_files_from_cache(cache, "lens_light", key, outputs):
+        return pd.read_csv(out_csv)
+    table = fit_hst_lens_light(config, hst_folder, out_csv, out_prior)
+    if cache:
+        put_files_in_cache(cache, "lens_light", key, outputs)
     return table
 
 

@@ -1,12 +1,16 @@
-"""Planning of the workflow: which shard jobs a config asks for, their paths, and the
-seeds derived for the later stages. Pure Python and numpy (no torch, h5py or plotting),
-so ``snakemake -n`` stays fast.
+"""Planning of the workflow: which shard jobs a config asks for, their paths, the
+seeds derived for the later stages, and how many cluster jobs a dry run's jobs make
+(:func:`count_cluster_jobs`). Pure Python and numpy (no torch, h5py or plotting), so
+``snakemake -n`` stays fast.
 """
 
 from __future__ import annotations
 
 import hashlib
+import re
+from collections import Counter
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,7 +22,9 @@ from subslope.simulation.resolve import resolved_scene, scene_multipliers
 __all__ = [
     "SHARD_DIR",
     "RUN_ONLY_RENDER_KEYS",
+    "count_cluster_jobs",
     "derived_seed",
+    "host_rules",
     "plan_problems",
     "slurm_gpu_problems",
     "multiplier_label",
@@ -257,3 +263,47 @@ def slurm_gpu_problems(config: Mapping[str, Any], gres: str | None = None) -> li
         f"{key.replace('gpus', 'device')}: cpu, or submit where GPU nodes are"
         for key, n in asks
     ]
+
+
+# Records of a `snakemake -n`: the header of a grouped job, a job's rule line (indented
+# under its group's header), and a rule file's `localrules:` block.
+_GROUP = re.compile(r"^\[[^\]]*\] Group job (\S+) \(jobs in lexicogr\. order\):$")
+_RECORD = re.compile(r"^( *)(?:local)?(?:rule|checkpoint) (\S+):$")
+_LOCALRULES = re.compile(r"^localrules:\s*\n((?:[ \t]+[\w, ]+\n?)+)", re.MULTILINE)
+
+
+def host_rules(root: str | Path = ".") -> set[str]:
+    """Rules that never become cluster jobs: the ``localrules:`` of the Snakefile and
+    ``workflow/rules/*.smk`` under ``root``, and ``all`` (no action)."""
+    root = Path(root)
+    names = {"all"}
+    for path in [root / "Snakefile", *sorted((root / "workflow" / "rules").glob("*.smk"))]:
+        if path.is_file():
+            for block in _LOCALRULES.findall(path.read_text()):
+                names.update(n for n in re.split(r"[\s,]+", block) if n)
+    return names
+
+
+def count_cluster_jobs(dry_run: str, local: set[str]) -> Counter[str]:
+    """Cluster jobs per kind in the text of a ``snakemake -n``: a group is one job (its
+    key: ``group <name's kind>: <member rules>``), an ungrouped job of a rule not in
+    ``local`` one job (its key: the rule)."""
+    groups: dict[str, set[str]] = {}
+    jobs: Counter[str] = Counter()
+    group = None
+    for line in dry_run.splitlines():
+        if match := _GROUP.match(line):
+            group = groups.setdefault(match.group(1), set())
+            continue
+        if match := _RECORD.match(line):
+            indent, rule = match.groups()
+            if indent and group is not None:
+                group.add(rule)
+            elif not indent:
+                group = None
+                if rule not in local:
+                    jobs[rule] += 1
+    for name, members in groups.items():
+        kind = name.rsplit("_", 1)[0]
+        jobs[f"group {kind}: {', '.join(sorted(members))}"] += 1
+    return jobs
