@@ -3,11 +3,19 @@
 - ``gpu`` tests are skipped unless CUDA is available.
 - ``reference`` tests are skipped unless lenstronomy is importable.
 - Matplotlib is forced onto the Agg backend.
+- The suite runs on pytest-xdist workers (``-n`` in pyproject.toml, ``--dist loadgroup``).
+  The tiny campaign runs once per session for all workers (:func:`tiny_run`). The tests
+  of the systematics variants, which run on it, join the xdist group ``systematics``,
+  and those that compile the render kernels the group ``compiled``
+  (:data:`COMPILED_MODULES`): each group runs on one worker (the variants once, each
+  kernel compiled once), the two groups first, then the other tests that read the
+  campaign (:data:`CAMPAIGN_FIXTURES`), then the rest.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import shutil
 import subprocess
@@ -20,6 +28,11 @@ import pytest
 import torch
 
 matplotlib.use("Agg")
+
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ:  # the workers share the cores
+    torch.set_num_threads(
+        max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    )
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")
@@ -42,7 +55,33 @@ def one_thread():
     torch.set_num_threads(n)
 
 
+#: Fixtures that stand for the finished tiny campaign (this file, tests/test_*.py).
+CAMPAIGN_FIXTURES = frozenset(
+    {"tiny_run", "campaign", "finished_campaign", "systematics_run", "cache_campaign"}
+)
+#: Modules whose tests torch.compile the population kernels (the render defaults on CPU).
+COMPILED_MODULES = frozenset(
+    {"test_accuracy_budget", "test_render", "test_fast_paths", "test_pair_kernels"}
+)
+
+
+def _schedule(item) -> tuple[int, str | None]:
+    """(rank in the run order, xdist group) of a test."""
+    fixtures = set(getattr(item, "fixturenames", ()))
+    if "systematics_run" in fixtures:
+        return 0, "systematics"
+    if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in COMPILED_MODULES:
+        return 1, "compiled"
+    return (2 if CAMPAIGN_FIXTURES & fixtures else 3), None
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups into the test ids
 def pytest_collection_modifyitems(config, items):
+    schedule = {item: _schedule(item) for item in items}
+    for item, (_, group) in schedule.items():
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+    items.sort(key=lambda item: schedule[item][0])  # stable: module order within a rank
     has_cuda = torch.cuda.is_available()
     has_lenstronomy = importlib.util.find_spec("lenstronomy") is not None
     skip_gpu = pytest.mark.skip(reason="needs a CUDA device")
@@ -114,16 +153,36 @@ def workdir(tmp_path_factory) -> Path:
     return workflow_copy(tmp_path_factory.mktemp("workflow"))
 
 
+def session_folder(tmp_path_factory) -> Path:
+    """The temporary folder of the whole test session: shared by the xdist workers (each
+    has a base folder of its own inside it), the base folder without xdist."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if "PYTEST_XDIST_WORKER" in os.environ else base
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
-    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per session,
-    in a workflow folder of its own (the dry-run tests keep theirs untouched)."""
+    """`snakemake --cores 2 --configfile config/tiny.yaml`: the whole DAG, once per test
+    session whichever xdist worker asks first (the others wait for it and read the same
+    folder), in a workflow folder of its own (the dry-run tests keep theirs untouched).
+    Tests that change the campaign work on a copy of it."""
+    from filelock import FileLock
+
     if not SNAKEMAKE.exists():
         pytest.skip(f"snakemake not found next to {sys.executable}")
     data_dir = shared_data_dir()
     if not data_dir.is_dir():
         pytest.skip(f"real data folder not found: {data_dir}")
-    root = workflow_copy(tmp_path_factory.mktemp("tiny_campaign"))
-    proc = run_snakemake(root, "--cores", "2", *TINY, mirror=data_dir, timeout=900)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    shared = session_folder(tmp_path_factory)
+    root, record = shared / "tiny_campaign", shared / "tiny_campaign.json"
+    with FileLock(str(shared / "tiny_campaign.lock")):
+        if not record.exists():
+            root.mkdir()
+            proc = run_snakemake(
+                workflow_copy(root), "--cores", "2", *TINY, mirror=data_dir, timeout=900
+            )
+            outcome = {"returncode": proc.returncode, "output": proc.stdout + proc.stderr}
+            record.write_text(json.dumps(outcome))
+    outcome = json.loads(record.read_text())
+    assert outcome["returncode"] == 0, outcome["output"]
     return root / "results"
