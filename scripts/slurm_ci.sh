@@ -10,7 +10,7 @@
 # 2. starts munged, slurmctld and slurmd, and stops, on every exit, the daemons it started;
 # 3. checks that a GPU request is refused before any job on this cluster without GPUs;
 # 4. runs the tiny campaign locally and through the profile at the same time, its shard
-#    and profile jobs bundled into groups (config/tiny.yaml: cluster.group_size), cancels
+#    and profile jobs bundled into one group job each (the profile's group-components), cancels
 #    the training job once while it runs on SLURM (the profile's retries resubmit it and
 #    it resumes from its checkpoint), checks that SLURM ran as many jobs as
 #    `subslope cluster-jobs` counts in the dry run (plus the resubmission), and compares

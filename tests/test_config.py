@@ -35,7 +35,6 @@ SHIPPED_DEVIATIONS = {
     ("null_tests", "scenes"),
     ("systematics", "variants"),
     ("systematics", "common"),
-    ("cluster", "group_size"),
 }
 
 #: The null-test scenes of config/config.yaml: the test sets without subhalos.

@@ -99,9 +99,9 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
         "write_summary",
     ):
         assert stats[rule] == 1, rule
-    # the cluster jobs: shard and profile jobs bundled by cluster.group_size
+    # the cluster jobs: shard and profile jobs bundled by the profile's group-components
     jobs = count_cluster_jobs(proc.stdout, host_rules(tmp_path))
-    size = cfg["cluster"]["group_size"]
+    size = _group_components()
     kinds = {"simulate": ("simulate_shard", "simulate_cdm_shard"),
              "evaluate": ("evaluate_profiles", "evaluate_cdm_profiles")}  # fmt: skip
     for kind, rules in kinds.items():
@@ -112,26 +112,37 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     assert sum(jobs.values()) <= 500, jobs
 
 
-def _group_members(dry_run: str) -> dict[str, int]:
-    """Members of each group in a dry run (its header is printed once per member)."""
-    members: dict[str, int] = {}
+def _group_components() -> dict[str, int]:
+    """The profile's ``group-components``, ``{group: jobs per cluster job}``."""
+    import yaml
+
+    profile = yaml.safe_load((REPO / "profiles" / "slurm" / "config.yaml").read_text())
+    return {k: int(v) for k, v in (item.split("=") for item in profile["group-components"])}
+
+
+def _group_jobs(dry_run: str) -> list[tuple[str, int]]:
+    """(group, members) of every group job of a dry run: its header, then one indented
+    record per member."""
+    out: list[tuple[str, int]] = []
     for line in dry_run.splitlines():
         if "] Group job " in line:
-            name = line.split("] Group job ")[1].split()[0]
-            members[name] = members.get(name, 0) + 1
-    return members
+            out.append((line.split("] Group job ")[1].split()[0], 0))
+        elif out and line.startswith("    rule "):
+            out[-1] = (out[-1][0], out[-1][1] + 1)
+        elif line.startswith("rule ") or line.startswith("localrule "):
+            out.append(("", 0))  # an ungrouped job ends the group's records
+    return [g for g in out if g[0]]
 
 
 def test_count_cluster_jobs_of_a_dry_run():
     text = "\n".join([
         "rule fetch_data:", "    output: a",
-        "[Thu Dec  3 13:13:57 2026] Group job simulate_0 (jobs in lexicogr. order):", "",
-        "    rule simulate_shard:", "        output: s0",
-        "[Thu Dec  3 13:13:57 2026] Group job simulate_0 (jobs in lexicogr. order):", "",
-        "    rule simulate_cdm_shard:", "        output: s1",
+        "[Thu Dec  3 13:13:57 2026] Group job simulate (jobs in lexicogr. order):", "",
+        "    [Thu Dec  3 13:13:57 2026]", "    rule simulate_shard:", "        output: s0",
+        "    [Thu Dec  3 13:13:57 2026]", "    rule simulate_cdm_shard:", "        output: s1",
         "rule train_estimator:", "    output: m",
-        "[Thu Dec  3 13:13:57 2026] Group job simulate_1 (jobs in lexicogr. order):", "",
-        "    rule simulate_shard:", "        output: s2",
+        "[Thu Dec  3 13:13:57 2026] Group job simulate (jobs in lexicogr. order):", "",
+        "    [Thu Dec  3 13:13:57 2026]", "    rule simulate_shard:", "        output: s2",
         "rule all:", "    input: m",
     ])  # fmt: skip
     jobs = count_cluster_jobs(text, {"fetch_data", "all"})
@@ -151,7 +162,6 @@ def test_tiny_groups_through_the_slurm_profile(workdir, data_dir):
     proc = subprocess.run([str(SNAKEMAKE), *argv], cwd=workdir, env=env, capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    # tiny.yaml: 8 shard jobs in groups of 4, 6 profile jobs in groups of 3
-    assert _group_members(proc.stdout) == {
-        "simulate_0": 4, "simulate_1": 4, "evaluate_0": 3, "evaluate_1": 3
-    }  # fmt: skip
+    # the 8 shard jobs and the 6 profile jobs of tiny.yaml, one cluster job each
+    assert sorted(_group_jobs(proc.stdout)) == [("evaluate", 6), ("simulate", 8)]
+    assert _group_components() == {"simulate": 20, "evaluate": 10}

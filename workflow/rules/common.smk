@@ -145,11 +145,13 @@ def stream_job():
 
 
 def simulation_targets():
-    """Shards, whitening statistics (if there are training shards) and scene figures."""
+    """Shards, whitening statistics (if there are training shards) and scene figures
+    (simulation.scene_examples)."""
     targets = [job["path"] for job in SHARD_JOBS]
     if whitening_shards():
         targets.append(rules.compute_whitening.output.json)
-    targets += expand(rules.plot_scene_examples.output.png, scene=SIM_SCENES)
+    if config["simulation"]["scene_examples"]:
+        targets += expand(rules.plot_scene_examples.output.png, scene=SIM_SCENES)
     return targets
 
 
@@ -201,34 +203,6 @@ def profile_files(scene, multiplier=None):
         if job["scene"] == scene
         and (multiplier is None or job["multiplier"] == multiplier)
     ]
-
-
-# Cluster job groups (config["cluster"]["group_size"]): on a cluster executor, each run
-# of group_size shard jobs (in SHARD_JOBS order) and of group_size profile evaluations
-# is one Snakemake group, i.e. one cluster job that runs them one after another (the
-# local resource `serial` below, held at 1 by profiles/slurm, keeps Snakemake from
-# sizing a group as if its members ran side by side). A local run has no groups.
-GROUP_SIZE = config["cluster"]["group_size"]
-_GROUP_INDEX = {
-    "simulate": {job["path"]: i for i, job in enumerate(SHARD_JOBS)},
-    "evaluate": {
-        profile_path(job): i
-        for i, job in enumerate(j for j in SHARD_JOBS if j["scene"] in eval_scenes())
-    },
-}
-
-
-def job_group(kind, wildcards):
-    """The group `<kind>_<k>` of the shard (or its profiles) named by `wildcards`."""
-    multiplier = wildcards.get("multiplier")
-    path = subslope.stages.plan.shard_path(
-        wildcards.scene,
-        int(wildcards.shard),
-        None if multiplier is None else float(multiplier),
-    )
-    if kind == "evaluate":
-        path = profile_path({"path": path})
-    return f"{kind}_{_GROUP_INDEX[kind][path] // GROUP_SIZE[kind]}"
 
 
 def calibration_inputs(wildcards):
@@ -342,10 +316,9 @@ SUMMARY_CSVS = [
     "trend",
     "stage_runtime",
 ]
-# Hash of the whole validated config except the data location (machine-specific) and
-# the cluster bundling (no result depends on it).
+# Hash of the whole validated config except the data location (machine-specific).
 CONFIG_HASH = subslope.config.config_hash(
-    {k: v for k, v in config.items() if k not in ("data", "cluster")}
+    {k: v for k, v in config.items() if k != "data"}
 )[:16]
 CONFIG_FILES = [os.path.relpath(f) for f in _CONFIG_FILES]
 

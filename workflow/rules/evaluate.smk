@@ -14,7 +14,7 @@ rule evaluate_profiles:
     benchmark:
         "results/benchmarks/evaluate_profiles/{scene}/shard_{shard}.tsv"
     group:
-        lambda wildcards: job_group("evaluate", wildcards)
+        "evaluate"
     conda:
         "../envs/subslope.yaml"
     threads: config["inference"]["threads"]

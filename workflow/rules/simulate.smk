@@ -16,7 +16,7 @@ rule simulate_shard:
     benchmark:
         "results/benchmarks/simulate_shard/{scene}/shard_{shard}.tsv"
     group:
-        lambda wildcards: job_group("simulate", wildcards)
+        "simulate"
     conda:
         "../envs/subslope.yaml"
     threads: 1

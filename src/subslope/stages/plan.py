@@ -285,25 +285,28 @@ def host_rules(root: str | Path = ".") -> set[str]:
 
 
 def count_cluster_jobs(dry_run: str, local: set[str]) -> Counter[str]:
-    """Cluster jobs per kind in the text of a ``snakemake -n``: a group is one job (its
-    key: ``group <name's kind>: <member rules>``), an ungrouped job of a rule not in
-    ``local`` one job (its key: the rule)."""
-    groups: dict[str, set[str]] = {}
+    """Cluster jobs per kind in the text of a ``snakemake -n``: a group job (its header,
+    then its members' records indented) is one job, keyed ``group <name>: <member
+    rules>``; an ungrouped job of a rule not in ``local`` is one job, keyed by its rule."""
     jobs: Counter[str] = Counter()
-    group = None
+    group: tuple[str, set[str]] | None = None
+
+    def close() -> None:
+        if group is not None:
+            jobs[f"group {group[0]}: {', '.join(sorted(group[1]))}"] += 1
+
     for line in dry_run.splitlines():
         if match := _GROUP.match(line):
-            group = groups.setdefault(match.group(1), set())
-            continue
-        if match := _RECORD.match(line):
+            close()
+            group = (match.group(1), set())
+        elif match := _RECORD.match(line):
             indent, rule = match.groups()
             if indent and group is not None:
-                group.add(rule)
+                group[1].add(rule)
             elif not indent:
+                close()
                 group = None
                 if rule not in local:
                     jobs[rule] += 1
-    for name, members in groups.items():
-        kind = name.rsplit("_", 1)[0]
-        jobs[f"group {kind}: {', '.join(sorted(members))}"] += 1
+    close()
     return jobs
