@@ -341,7 +341,9 @@ def _stamp_shape(path: Path, hdu: int) -> tuple[int, int]:
 
 @lru_cache(maxsize=4096)
 def _read_stamp(path: str, hdu: int) -> np.ndarray:
-    data = np.array(_hdu(Path(path), hdu).data, dtype=np.float64)
+    unit = _hdu(Path(path), hdu)
+    data = np.array(unit.data, dtype=np.float64)
+    del unit.data  # the open file keeps no second copy: this cached array is the one
     if data.ndim != 2 or not np.all(np.isfinite(data)):
         raise CosmosError(f"{path}[{hdu}] is not a finite 2-D image")
     data.setflags(write=False)
