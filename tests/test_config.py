@@ -39,7 +39,7 @@ SHIPPED_DEVIATIONS = {
 
 #: The null-test scenes of config/config.yaml: the test sets without subhalos.
 NULL_SCENES = {
-    "null_nosub": {"subhalos": {"count": 0}, "components": {"los": False}},
+    "null_nosub": {"subhalos": {"count": 0}, "components": {"los": False, "sky": True}},
     "null_nosub_los": {"subhalos": {"count": 0}, "los": {"profile": "nfw"}},
 }
 
@@ -58,7 +58,9 @@ SCENE_KEYS_WITHOUT_DEFAULT = {
 #: Where every scene of config/config.yaml departs from the paper's presets: the choices
 #: that make the simulations cover the HST lenses (docs/simulation.md).
 SHIPPED_SCENE_CHOICES = {
-    "lens_light": {"prior": "hst_fits"},
+    "lens_light": {"prior": "hst_joint"},
+    "components": {"sky": True},
+    "sky": {"level": {"dist": "normal", "mean": 0.0661, "std": 0.0813, "low": 0.0}},
     "main_lens": {
         "x": {"dist": "uniform", "low": -0.3, "high": 0.3},
         "y": {"dist": "uniform", "low": -0.3, "high": 0.3},

@@ -9,8 +9,10 @@ from subslope.io.cosmos import (
     CosmosCuts,
     CosmosError,
     clean_stamp,
+    denoise_stamp,
     normalize_to_magnitude,
     place_at_redshift,
+    residual_noise_ratio,
     split_idents,
 )
 
@@ -167,3 +169,27 @@ def test_cleaning_the_bundled_stamps_keeps_their_flux(data_dir):
         flux = 10 ** (-0.4 * (mag - 25.95))
         tol = 0.1 if out.peak_snr > 10 else 0.3
         assert out.image.sum() == pytest.approx(flux, rel=tol)
+
+
+def test_wavelet_denoiser_cuts_the_noise_and_keeps_the_galaxy():
+    galaxy, stamp = _blob()
+    out = denoise_stamp(stamp, 0.05, smoothing=1.0)
+    foot = clean_stamp(stamp, 0.05).weight
+    far = foot == 0
+    assert np.std(out[far]) < 0.35 * np.std(stamp[far])
+    assert out.sum() == pytest.approx(galaxy.sum(), rel=0.05)
+    assert np.abs(out - galaxy).max() < 0.3 * galaxy.max()
+    ratio = residual_noise_ratio(stamp, 0.05, foot, smoothing=1.0)
+    assert 0.1 < ratio < 0.6
+    assert residual_noise_ratio(stamp, 0.05, np.zeros_like(foot)) == 1.0
+    with pytest.raises(CosmosError, match="noise sigma"):
+        denoise_stamp(stamp, -1.0)
+
+
+def test_dimmed_galaxies_start_at_their_own_brightest_magnitude():
+    from subslope.simulation.sources import brightest_magnitude
+
+    src = {"mag_renormalize": [20.5, 23.0], "clean": {"max_noise_fraction": 1.0}}
+    assert brightest_magnitude(0.4, src) == 20.5
+    assert brightest_magnitude(10.0, src) == pytest.approx(23.0)
+    assert np.isnan(brightest_magnitude(0.4, {"mag_renormalize": None}))

@@ -8,7 +8,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from subslope.validation.domain import STATISTICS, domain_percentiles, image_statistics
+from subslope.validation.domain import (
+    STATISTICS,
+    border_level,
+    compact_objects,
+    domain_percentiles,
+    image_statistics,
+    spread_table,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -41,9 +48,10 @@ def test_statistics_of_simulated_lenses_are_finite_and_as_defined(data_dir):
     scene = Scene.from_config(
         "train",
         {
-            "lens_light": {"prior": "hst_fits"},
+            "lens_light": {"prior": "hst_joint"},
             "source": {"kind": "sersic"},
-            "components": {"subhalos": False, "los": False},
+            "components": {"subhalos": False, "los": False, "sky": True},
+            "sky": {"level": {"dist": "uniform", "low": 0.05, "high": 0.2}},
         },
     )
     macro = sample_macro(scene, 4, np.random.default_rng(2))
@@ -68,6 +76,37 @@ def test_statistics_of_simulated_lenses_are_finite_and_as_defined(data_dir):
     np.testing.assert_allclose(stats["lens_x"], macro["lens_x"], atol=0.03)
     assert np.median(np.abs(stats["light_mag"] - macro["light_mag"])) < 0.3
     assert np.all((stats["bright_fraction"] >= 0) & (stats["bright_fraction"] <= 1))
+    # the border holds the sky level and the wings of the lens light
+    excess = stats["border_level"].to_numpy() - macro["sky_level"]
+    assert np.all(excess > -0.005) and np.min(excess) < 0.005
+
+
+def test_border_level_is_the_clipped_median_of_the_frame():
+    rng = np.random.default_rng(0)
+    images = rng.normal(0.1, 0.01, (2, 60, 60))
+    images[1] += 0.05
+    images[:, 20:40, 20:40] += 5.0  # a galaxy inside the frame is not counted
+    images[0, 1, 1] = 100.0  # nor a hot pixel on it
+    np.testing.assert_allclose(border_level(images), [0.1, 0.15], atol=2e-3)
+
+
+def test_compact_objects_are_masked_and_arcs_are_not():
+    snr = np.zeros((1, 50, 50))
+    snr[0, 10:12, 10:12] = 20.0  # a 4-pixel companion core
+    snr[0, 30, 5:45] = 8.0  # a 40-pixel arc
+    mask = compact_objects(snr)[0]
+    assert mask[10, 10] and mask[8, 8] and not mask[7, 7]  # dilated by 2
+    assert not mask[30, 20]
+    assert not compact_objects(np.zeros((1, 10, 10))).any()
+
+
+def test_spread_table_is_the_simulated_width_over_the_real_one():
+    sim = pd.DataFrame({"a": np.linspace(0.0, 100.0, 1001)})
+    real = pd.DataFrame({"a": [40.0, 50.0, np.nan]})
+    t = spread_table(sim, real, statistics=("a",))
+    row = t.iloc[0]
+    assert row["sim_lo"] == pytest.approx(1.0) and row["sim_hi"] == pytest.approx(99.0)
+    assert row["hst_min"] == 40.0 and row["width_ratio"] == pytest.approx(9.8)
 
 
 @pytest.mark.slow
@@ -93,5 +132,12 @@ def test_domain_check_command_writes_the_table_and_figures(tmp_path, data_dir):
     table = pd.read_csv(out / "domain_check.csv")
     assert len(table) == 13 and {"system", "inside", "outside"} <= set(table.columns)
     assert all(f"{s}_pct" in table.columns for s in STATISTICS)
-    for name in ("domain_check.png", "domain_gallery.png", "statistics.csv", "sources.csv"):
+    for name in (
+        "domain_check.png",
+        "domain_gallery.png",
+        "statistics.csv",
+        "sources.csv",
+        "spread.csv",
+        "source_cleaning.png",
+    ):
         assert (out / name).is_file(), name

@@ -1,5 +1,6 @@
-"""Lens-light fit (subslope.physics.light.fit): exact recovery of a noise-free Sérsic,
-recovery on simulated lenses at the training S/N, and the HST-derived prior preset."""
+"""Lens-light fit (subslope.physics.light.fit): exact recovery of a noise-free Sérsic on a
+sky pedestal, recovery on simulated lenses at the training S/N, and the HST-derived prior
+presets (the joint prior of the pedestal fits, the older boxes of fits without it)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,13 @@ import torch
 
 from subslope.physics.grid import pixel_grid
 from subslope.physics.instrument import gaussian_psf
-from subslope.physics.light.fit import fit_lens_light, prior_from_fits, sersic_model
+from subslope.physics.light.fit import (
+    fit_lens_light,
+    joint_prior_from_fits,
+    prior_from_fits,
+    sersic_model,
+    sky_prior_from_fits,
+)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -33,7 +40,7 @@ def test_noise_free_sersic_is_recovered_exactly():
     truth = torch.tensor(
         [
             [16.0, np.log(1.5), 4.0, 0.1, -0.05, 0.03, -0.02, 0.0],
-            [15.2, np.log(6.0), 6.0, -0.2, 0.1, -0.1, 0.05, 0.0],
+            [15.2, np.log(6.0), 6.0, -0.2, 0.1, -0.1, 0.05, 0.12],
         ],
         dtype=torch.float64,
     )
@@ -45,13 +52,14 @@ def test_noise_free_sersic_is_recovered_exactly():
     np.testing.assert_allclose(fit.r_sersic, np.exp(truth[:, 1]), rtol=5e-3)
     np.testing.assert_allclose(fit.n_sersic, truth[:, 2], atol=5e-3)
     np.testing.assert_allclose(fit.x, truth[:, 5], atol=1e-4)
+    np.testing.assert_allclose(fit.background, truth[:, 7], atol=1e-4)
     assert np.all(fit.chi2_dof < 1e-3)
 
 
 def test_recovery_on_simulated_lenses_with_arcs_and_noise():
-    """Lens light from the hst_fits prior, a lensed Sérsic source of 20.5-22.5 mag and the
-    detector noise: the arcs are masked, the light recovered (benchmarks/lens_light_fit.py
-    measures 200 lenses the same way)."""
+    """Lens light from the hst_joint prior on a sky level, a lensed Sérsic source of
+    20.5-22.5 mag and the detector noise: the arcs are masked, the light and the sky
+    recovered (benchmarks/lens_light_fit.py measures 200 lenses the same way)."""
     from subslope.physics.instrument import Instrument, add_noise
     from subslope.physics.light.sersic import e1e2_to_q_phi
     from subslope.render.pipeline import RenderSettings, render
@@ -61,9 +69,10 @@ def test_recovery_on_simulated_lenses_with_arcs_and_noise():
     scene = Scene.from_config(
         "train",
         {
-            "lens_light": {"prior": "hst_fits"},
+            "lens_light": {"prior": "hst_joint"},
             "source": {"kind": "sersic", "mag": {"dist": "uniform", "low": 20.5, "high": 22.5}},
-            "components": {"subhalos": False, "los": False},
+            "components": {"subhalos": False, "los": False, "sky": True},
+            "sky": {"level": {"dist": "uniform", "low": 0.0, "high": 0.2}},
         },
     )
     macro = sample_macro(scene, 12, np.random.default_rng(3))
@@ -84,14 +93,14 @@ def test_recovery_on_simulated_lenses_with_arcs_and_noise():
     assert np.median(np.abs(fit.r_sersic / macro["light_r"] - 1)) < 0.3
     assert np.median(np.abs(fit.n_sersic - macro["light_n"])) < 0.8
     assert np.median(np.abs(fit.q - q.numpy())) < 0.03
+    assert np.median(np.abs(fit.background - macro["sky_level"])) < 0.01
     assert fit.mask.mean() > 0.3 and np.all(np.isfinite(fit.model))
 
 
-def test_hst_fits_preset_is_the_prior_derived_from_the_hst_fits(data_dir):
+def _hst_fits(data_dir, **kw):
     from subslope import config as cfgmod
     from subslope.io.observations import find_lens_centre, load_hst
     from subslope.simulation.observing import build_instrument, build_psf
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
 
     cfg = cfgmod.validate({"data": {"resources_dir": str(data_dir)}})
     inst = build_instrument(cfg)
@@ -104,11 +113,36 @@ def test_hst_fits_preset_is_the_prior_derived_from_the_hst_fits(data_dir):
         background_sigma=inst.background_sigma,
         exposure_time=inst.total_exposure_time,
         pixel_scale=inst.pixel_scale,
+        **kw,
     )
+    return obs, fit
+
+
+def test_hst_joint_preset_is_the_prior_of_the_pedestal_fits_and_they_are_plausible(data_dir):
+    from subslope.physics.cosmology import arcsec_to_mpc
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.stages.domain import JOINT_WIDEN
+
+    obs, fit = _hst_fits(data_dir)
+    derived = joint_prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q, widen=JOINT_WIDEN)
+    assert derived == LENS_LIGHT_PRIORS["hst_joint"]["joint"]
+    # physical: SLACS-like early-type lenses, a few kpc and 15-18 mag, on a sky pedestal
+    r_kpc = fit.r_sersic * 1e3 * arcsec_to_mpc(np.array([o.z_lens for o in obs]))
+    assert np.all((fit.mag > 15.0) & (fit.mag < 18.0))
+    assert np.all((r_kpc > 1.0) & (r_kpc < 15.0))
+    assert np.all((fit.background > 0.0) & (fit.background < 0.25))
+    sky = sky_prior_from_fits(fit.background, widen=JOINT_WIDEN)
+    assert sky["low"] == 0.0 and 0.03 < sky["mean"] < 0.12
+
+
+def test_hst_fits_preset_is_the_box_of_the_fits_without_a_pedestal(data_dir):
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+
+    _, fit = _hst_fits(data_dir, pedestal=False)
     derived = prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q)
-    assert derived == LENS_LIGHT_PRIORS["hst_fits"]
-    # the paper's prior covers none of the 13 fitted magnitudes
-    assert np.all(fit.mag < LENS_LIGHT_PRIORS["table1"]["mag"]["low"])
+    assert {k: v for k, v in LENS_LIGHT_PRIORS["hst_fits"].items() if k != "joint"} == derived
+    # without the pedestal the sky becomes Sérsic wings: R at the box edge, too bright
+    assert np.sum(fit.r_sersic > 19.0) >= 3 and np.all(fit.mag < 16.5)
 
 
 def test_prior_from_fits_rounds_outwards_and_clips():
@@ -126,3 +160,20 @@ def test_bad_images_are_refused():
     bad[0, 3, 3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         _fit(bad, [[0, 0]], [1.0])
+
+
+def test_joint_prior_from_fits_is_the_sample_moments_widened():
+    rng = np.random.default_rng(0)
+    mag, r, n, q = (
+        rng.normal(16, 0.5, 50),
+        np.exp(rng.normal(0, 0.3, 50)),
+        rng.normal(4, 1, 50),
+        rng.uniform(0.5, 0.9, 50),
+    )
+    p = joint_prior_from_fits(mag, r, n, q, widen=2.0)
+    assert list(p["mean"]) == ["mag", "ln_r", "n", "q"]
+    np.testing.assert_allclose(p["mean"]["ln_r"], np.log(r).mean(), rtol=1e-4)
+    np.testing.assert_allclose(np.array(p["cov"]), np.cov([mag, np.log(r), n, q]), rtol=1e-4)
+    assert p["widen"] == 2.0
+    with pytest.raises(ValueError, match="at least 5"):
+        joint_prior_from_fits(mag[:3], r[:3], n[:3], q[:3])

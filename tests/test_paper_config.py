@@ -49,7 +49,8 @@ def test_paper_config_has_the_paper_numbers():
     }
     assert cfg["scenes"]["validation"]["subhalos"]["count"]["high"] == 1800
     # the lens light that covers the HST lenses, in every scene
-    assert all(s["lens_light"]["prior"] == "hst_fits" for s in cfg["scenes"].values())
+    assert all(s["lens_light"]["prior"] == "hst_joint" for s in cfg["scenes"].values())
+    assert all(s["components"]["sky"] for s in cfg["scenes"].values())
     assert sim["sources"]["clean"]["enabled"] is True
 
 

@@ -11,6 +11,7 @@ from scipy import stats
 from subslope.simulation.priors import (
     DISTRIBUTIONS,
     Fixed,
+    JointNormal,
     Normal,
     PowerLaw,
     Prior,
@@ -163,3 +164,50 @@ def test_truncated_normal_quantile_matches_scipy():
     np.testing.assert_allclose(
         truncated_normal_quantile(0.25, a, a + 1), stats.truncnorm.ppf(0.25, a, a + 1), rtol=1e-10
     )
+
+
+JOINT = {
+    "mean": {"a": 1.0, "b": -2.0},
+    "cov": [[0.04, 0.03], [0.03, 0.09]],
+    "widen": 1.5,
+    "low": {"a": -10.0, "b": -20.0},
+    "high": {"a": 10.0, "b": 20.0},
+}
+
+
+def test_joint_normal_far_box_is_the_widened_normal(rng):
+    p = JointNormal.from_config(JOINT, "k")
+    x = p.sample(rng, N)
+    np.testing.assert_allclose([x["a"].mean(), x["b"].mean()], [1.0, -2.0], atol=0.01)
+    cov = np.cov([x["a"], x["b"]])
+    np.testing.assert_allclose(cov, 2.25 * np.array(JOINT["cov"]), rtol=0.05)
+    assert stats.kstest(x["b"], stats.norm(-2.0, 1.5 * 0.3).cdf).pvalue > 1e-3
+    assert JointNormal.from_config(p.to_config(), "k") == p
+
+
+def test_joint_normal_stays_in_a_tight_box_and_keeps_the_correlation(rng):
+    spec = dict(JOINT, low={"a": 0.9, "b": -2.5}, high={"a": 1.2, "b": -1.0})
+    x = JointNormal.from_config(spec, "k").sample(rng, N)
+    assert x["a"].min() >= 0.9 and x["a"].max() <= 1.2
+    assert x["b"].min() >= -2.5 and x["b"].max() <= -1.0
+    assert np.corrcoef(x["a"], x["b"])[0, 1] > 0.05
+    again = JointNormal.from_config(spec, "k").sample(np.random.default_rng(5), 10)
+    same = JointNormal.from_config(spec, "k").sample(np.random.default_rng(5), 10)
+    assert all(np.array_equal(again[k], same[k]) for k in again)
+
+
+@pytest.mark.parametrize(
+    "change, needle",
+    [
+        ({"cov": [[0.04, 0.05], [0.05, 0.04]]}, "positive definite"),
+        ({"cov": [[0.04, 0.03], [0.02, 0.09]]}, "symmetric"),
+        ({"cov": [[0.04]]}, "2 x 2"),
+        ({"widen": 0.0}, "widen"),
+        ({"low": {"a": 0.0}}, "k.low"),
+        ({"mean": {"a": 50.0, "b": 0.0}}, "k.mean.a"),
+        ({"extra": 1}, "exactly the keys"),
+    ],
+)
+def test_joint_normal_bad_specs_name_the_key(change, needle):
+    with pytest.raises(PriorError, match=needle):
+        JointNormal.from_config({**JOINT, **change}, "k")

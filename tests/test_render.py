@@ -354,6 +354,18 @@ def test_los_changes_image_and_rejects_planes_behind_source():
         R.render(m, PSF, FAST, los=bad)
 
 
+def test_sky_level_is_flat_after_the_psf_and_not_in_the_smooth_model():
+    m = macro_of(2, seed=15)
+    base = R.render(m, PSF, FAST)
+    m["sky_level"] = np.array([0.1, 0.0])
+    sky = R.render(m, PSF, FAST)
+    torch.testing.assert_close(sky[0] - base[0], torch.full_like(base[0], 0.1))
+    assert torch.equal(sky[1], base[1])
+    assert torch.equal(
+        R.render_smooth(m, PSF, FAST), R.render_smooth(macro_of(2, seed=15), PSF, FAST)
+    )
+
+
 def test_lens_light_flux_matches_magnitude():
     m = macro_of(1, seed=14)
     m.update(light_mag=np.array([18.0]), light_r=np.array([0.5]), light_n=np.array([1.5]))

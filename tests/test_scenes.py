@@ -274,7 +274,7 @@ def test_config_fragment_matches_presets_and_schema():
 
     def check(props, values, where):
         for key, entry in props.items():
-            if "properties" in entry:  # nested object (source.multi_sersic): compare its keys
+            if "properties" in entry and values[key] is not None:  # nested (source.multi_sersic)
                 check(entry["properties"], values[key], f"{where}.{key}")
             elif "default" in entry and key not in realism.get(where, {}):
                 assert entry["default"] == values[key], f"{where}.{key}"
@@ -409,7 +409,7 @@ def test_named_lens_light_priors():
         == Scene.from_config("train", {"lens_light": {"prior": "table1"}}).lens_light
     )
     assert fits.lens_light.mag.support == (13.02, 16.9)
-    assert set(LENS_LIGHT_PRIORS) == {"table1", "hst_fits"}
+    assert set(LENS_LIGHT_PRIORS) == {"table1", "hst_fits", "hst_joint"}
     # a prior written beside the name overrides that one key
     one = Scene.from_config(
         "nfw",
@@ -420,6 +420,58 @@ def test_named_lens_light_priors():
         and one.lens_light.n_sersic == fits.lens_light.n_sersic
     )
     with pytest.raises(
-        SceneError, match=r"scenes.train.lens_light.prior = 'sdss'; allowed: hst_fits, table1"
+        SceneError,
+        match=r"scenes.train.lens_light.prior = 'sdss'; allowed: hst_fits, hst_joint, table1",
     ):
         Scene.from_config("train", {"lens_light": {"prior": "sdss"}})
+
+
+def test_joint_lens_light_prior_draws_round_lenses_and_replaces_the_boxes(rng):
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+
+    joint = Scene.from_config("train", {"lens_light": {"prior": "hst_joint"}})
+    assert joint.lens_light.joint is not None
+    assert Scene.from_config("train").lens_light.joint is None
+    m = sample_macro(joint, 20_000, rng)
+    e = np.hypot(m["light_e1"], m["light_e2"])
+    q = (1 - e) / (1 + e)
+    spec = LENS_LIGHT_PRIORS["hst_joint"]["joint"]
+    assert np.percentile(q, 99) > 0.93  # J1142+1001 (q = 0.93) is covered
+    assert q.min() >= spec["low"]["q"] - 1e-12
+    np.testing.assert_allclose(np.median(m["light_mag"]), spec["mean"]["mag"], atol=0.05)
+    # brighter lenses are larger: the fits' correlation survives the draw
+    assert np.corrcoef(m["light_mag"], np.log(m["light_r"]))[0, 1] < -0.5
+    # the position angle is uniform: no preferred e1 or e2 sign
+    assert abs(np.mean(m["light_e1"])) < 0.01 and abs(np.mean(m["light_e2"])) < 0.01
+    # the joint draw comes after the others: every other parameter is unchanged
+    plain = sample_macro(Scene.from_config("train"), 50, np.random.default_rng(9))
+    other = sample_macro(joint, 50, np.random.default_rng(9))
+    assert all(np.array_equal(plain[k], other[k]) for k in plain if not k.startswith("light_"))
+
+
+def test_sky_level_is_drawn_last_and_only_when_on():
+    spec = {
+        "components": {"sky": True},
+        "sky": {"level": {"dist": "uniform", "low": 0.05, "high": 0.2}},
+    }
+    on = sample_macro(Scene.from_config("train", spec), 40, np.random.default_rng(2))
+    off = sample_macro(Scene.from_config("train"), 40, np.random.default_rng(2))
+    assert "sky_level" not in off
+    assert np.all((on["sky_level"] >= 0.05) & (on["sky_level"] <= 0.2))
+    assert all(np.array_equal(off[k], on[k]) for k in off)
+
+
+@pytest.mark.parametrize(
+    "joint, needle",
+    [
+        ({"widen": -1.0}, "lens_light.joint.widen"),
+        ({"low": {"mag": 10.0, "ln_r": -3.0, "n": 0.1, "q": 0.2}}, "box of n"),
+        ({"mean": {"mag": 16.0, "r": 0.3}}, "lens_light.joint.mean.r"),
+    ],
+)
+def test_bad_joint_lens_light_names_the_key(joint, needle):
+    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+
+    spec = {**LENS_LIGHT_PRIORS["hst_joint"]["joint"], **joint}
+    with pytest.raises(ValueError, match=needle):  # SceneError or PriorError
+        Scene.from_config("train", {"lens_light": {"prior": "hst_joint", "joint": spec}})

@@ -80,6 +80,7 @@ def test_the_changes_column_lists_what_each_variant_changes():
     paper = set(changes["paper"].split("; "))
     assert paper == set(sheet) | {
         "scenes.*.lens_light.prior=table1",
+        "scenes.*.components.sky=false",
         "simulation.sources.folder=[cosmos]",
     }
 

@@ -340,7 +340,12 @@ def test_real_run_tiny_simulation(tiny_run, campaign):
     # the workflow's shard equals the package's (same config, same seed streams)
     with shards.open_shard(results / "simulate_shard" / "train" / "shard_1.h5") as s:
         np.testing.assert_array_equal(
-            rerender.rerender(s.path, 2, cosmos=campaign / "resources" / "cosmos"), s.images[2]
+            rerender.rerender(
+                s.path,
+                2,
+                cosmos=[campaign / "resources" / f for f in ("cosmos", "cosmos_extension")],
+            ),
+            s.images[2],
         )
     white = json.loads((results / "compute_whitening" / "whitening.json").read_text())
     assert white["n_images"] == 6 and white["std"] > 0 and len(white["shards"]) == 2

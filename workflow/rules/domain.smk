@@ -41,6 +41,7 @@ rule check_domain:
     output:
         csv=update("results/check_domain/domain_check.csv"),
         statistics=update("results/check_domain/statistics.csv"),
+        spread=update("results/check_domain/spread.csv"),
         sources=update("results/check_domain/sources.csv"),
         pdf=update("results/figures/domain_check.pdf"),
         png=update(
@@ -55,6 +56,14 @@ rule check_domain:
             report(
                 "results/figures/domain_gallery.png",
                 caption="../report/domain_gallery.rst",
+                category="Simulation",
+            )
+        ),
+        sources_pdf=update("results/figures/source_cleaning.pdf"),
+        sources_png=update(
+            report(
+                "results/figures/source_cleaning.png",
+                caption="../report/source_cleaning.rst",
                 category="Simulation",
             )
         ),

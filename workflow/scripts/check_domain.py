@@ -19,7 +19,7 @@ try:
         read_whitening(snakemake.input.whitening),
         snakemake.params.folder,
         os.path.dirname(snakemake.output.csv),
-        (snakemake.output.pdf[: -len(".pdf")], snakemake.output.gallery_pdf[: -len(".pdf")]),
+        [str(snakemake.output[k])[: -len(".pdf")] for k in ("pdf", "gallery_pdf", "sources_pdf")],
         scene=snakemake.params.scene,
     )
 except Exception:

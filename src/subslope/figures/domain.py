@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 
 from subslope.figures.save import footer
 
-__all__ = ["LABELS", "domain_histograms", "domain_gallery"]
+__all__ = ["LABELS", "domain_histograms", "domain_gallery", "source_cleaning"]
 
 #: Axis label of each statistic.
 LABELS = {
@@ -28,6 +28,7 @@ LABELS = {
     "light_q": "fitted axis ratio q",
     "arc_snr": "peak arc S/N",
     "bright_fraction": "fraction of mask > 3σ",
+    "border_level": "sky level at the border (e⁻/s)",
 }
 
 
@@ -111,4 +112,35 @@ def domain_gallery(
     )
     footer(fig, run_name, "subslope.figures.domain")
     fig.tight_layout(rect=(0, 0.03, 1, 0.95))
+    return fig
+
+
+def source_cleaning(
+    examples: Sequence[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]],
+    *,
+    run_name: str,
+    cmap: str = "magma",
+) -> Figure:
+    """COSMOS stamps before and after cleaning, one row per galaxy: the raw stamp, the
+    footprint alone and the denoised stamp in its footprint, on one asinh stretch per row
+    (in units of the stamp's noise σ, from −2 σ to the row's 99.5th percentile).
+    ``examples``: ``(ident, raw, footprint only, denoised, σ)`` per galaxy."""
+    n = len(examples)
+    fig = Figure(figsize=(6.6, 2.1 * n + 0.8))
+    axes = fig.subplots(n, 3, squeeze=False)
+    titles = ("raw stamp", "footprint only", "denoised in footprint")
+    for row, (ident, raw, foot, den, sigma) in zip(axes, examples, strict=True):
+        panels = [np.asarray(a, dtype=np.float64) / sigma for a in (raw, foot, den)]
+        vmax = float(np.percentile(panels[0], 99.5))
+        norm = AsinhNorm(linear_width=2.0, vmin=-2.0, vmax=max(vmax, 3.0))
+        for ax, img, title in zip(row, panels, titles, strict=True):
+            ax.imshow(img, origin="lower", cmap=cmap, norm=norm, interpolation="nearest")
+            ax.set_axis_off()
+            ax.set_title(f"{ident}: {title}", fontsize=7)
+    fig.suptitle(
+        "COSMOS sources before and after cleaning (S/N per stamp pixel, asinh stretch)",
+        fontsize=9,
+    )
+    footer(fig, run_name, "subslope.io.cosmos")
+    fig.tight_layout(rect=(0, 0.03, 1, 0.96))
     return fig

@@ -426,3 +426,58 @@ def _central_label(labels: np.ndarray, smooth: np.ndarray) -> int:
         return 0
     k = np.argmax(np.where(pool, smooth, -np.inf))
     return int(labels.flat[k])
+
+
+def denoise_stamp(
+    stamp: np.ndarray, noise_sigma: float, *, wavelet: str = "db2", smoothing: float = 0.0
+) -> np.ndarray:
+    """Wavelet-denoised COSMOS stamp: scikit-image's ``denoise_wavelet`` (BayesShrink
+    soft thresholds per sub-band, Chang, Yu & Vetterli 2000) at the stamp's known noise
+    σ (e⁻/s per pixel), then an optional Gaussian of σ = ``smoothing`` stamp pixels. The
+    galaxy's structure survives (the thresholds adapt to each sub-band's signal); the
+    white sky noise is cut to ~⅓ (:func:`residual_noise_ratio`)."""
+    from scipy import ndimage
+    from skimage.restoration import denoise_wavelet
+
+    img = np.asarray(stamp, dtype=np.float64)
+    if not (noise_sigma > 0 and np.isfinite(noise_sigma)):
+        raise CosmosError(f"stamp noise sigma must be finite and > 0, got {noise_sigma}")
+    out = denoise_wavelet(
+        img,
+        sigma=float(noise_sigma),
+        wavelet=wavelet,
+        mode="soft",
+        method="BayesShrink",
+        rescale_sigma=False,
+        channel_axis=None,
+    )
+    if smoothing > 0:
+        out = ndimage.gaussian_filter(out, smoothing, mode="nearest")
+    return np.asarray(out, dtype=np.float64)
+
+
+def residual_noise_ratio(
+    stamp: np.ndarray,
+    noise_sigma: float,
+    weight: np.ndarray,
+    *,
+    wavelet: str = "db2",
+    smoothing: float = 0.0,
+    seed: int = 0,
+    draws: int = 2,
+) -> float:
+    """Noise left by :func:`denoise_stamp` inside a footprint ``weight``, in units of
+    ``noise_sigma``: a parametric bootstrap that adds ``draws`` fresh noise
+    realisations of σ to the denoised stamp, denoises each again and takes the rms
+    difference from the denoised stamp over the pixels where ``weight > 0``."""
+    clean = denoise_stamp(stamp, noise_sigma, wavelet=wavelet, smoothing=smoothing)
+    foot = np.asarray(weight) > 0
+    if not foot.any():
+        return 1.0
+    rng = np.random.default_rng(seed)
+    diffs = []
+    for _ in range(draws):
+        noisy = clean + rng.normal(0.0, noise_sigma, clean.shape)
+        again = denoise_stamp(noisy, noise_sigma, wavelet=wavelet, smoothing=smoothing)
+        diffs.append((again - clean)[foot])
+    return float(np.sqrt(np.mean(np.concatenate(diffs) ** 2)) / noise_sigma)

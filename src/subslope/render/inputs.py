@@ -28,6 +28,7 @@ GROUPS = {
     "shear": ("shear_g1", "shear_g2"),
     "lens_light": ("light_mag", "light_r", "light_n", "light_e1", "light_e2"),
     "source_sersic": ("src_mag", "src_r", "src_n", "src_e1", "src_e2"),
+    "sky": ("sky_level",),
 }
 
 

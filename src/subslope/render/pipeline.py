@@ -387,8 +387,8 @@ def _source_light(
 def _observe(
     batch: _Batch, sb: Tensor, psf: Tensor, spectrum: KernelSpectrum | None, smooth: bool
 ) -> Tensor:
-    """Add the lens light, bin the sub-pixels, × pixel area and convolve with the PSF:
-    ``(b, npix, npix)`` e⁻/s per pixel."""
+    """Add the lens light, bin the sub-pixels, × pixel area, convolve with the PSF and
+    add the sky level: ``(b, npix, npix)`` e⁻/s per pixel."""
     settings, par = batch.settings, batch.par
     xg, yg, _ = batch.grid
     k = settings.supersample
@@ -414,13 +414,17 @@ def _observe(
         img = _bin(img, k)
     img = img * (settings.pixel_scale**2)
     count_step("psf")
-    return torch.cat(
+    img = torch.cat(
         [
             convolve(img[i : i + 1], psf, method=settings.convolution, spectrum=spectrum)
             for i in range(batch.size)
         ],
         0,
     )
+    if not smooth and has_group(batch.macro, "sky"):
+        count_step("sky")
+        img = img + par("sky_level")[:, :, None]
+    return img
 
 
 def _render_group(

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from subslope.simulation.scenes import MULTI_SERSIC_KEYS, Scene, SourceSpec
+from subslope.simulation.scenes import MULTI_SERSIC_KEYS, LensLightSpec, Scene, SourceSpec
 
 __all__ = ["sample_macro"]
 
@@ -79,8 +79,10 @@ def sample_macro(
         float64 arrays keyed as in ``_MACRO`` (angles in arcsec, angles φ in rad,
         masses not included), plus ``n_sub`` (int64, subhalos on), ``gamma_sub``
         (label γ, when ``scene.has_label``; shared by the images of a set),
-        ``c_multiplier`` (CDM scenes) and ``set_index`` (int64). Lens light is centred
-        on ``lens_x, lens_y``. Keys of switched-off components are absent.
+        ``c_multiplier`` (CDM scenes), ``sky_level`` (e⁻/s per pixel, ``components.sky``)
+        and ``set_index`` (int64). Lens light is centred on ``lens_x, lens_y``; with a
+        joint lens-light prior its five keys come from that draw. Keys of switched-off
+        components are absent.
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n = {n!r} must be a positive integer number of images")
@@ -126,7 +128,31 @@ def sample_macro(
     if scene.source.kind == "multi_sersic":
         # Drawn after everything else, so the other kinds' streams are unchanged.
         out.update(_sample_multi_sersic(scene.source, drawn, n, rng))
+    if scene.lens_light.joint is not None:
+        light = _sample_joint_light(scene.lens_light, n, rng)
+        if comp.lens_light:
+            out.update(light)
+    if comp.sky:  # last: a scene without sky draws the same stream as before
+        out["sky_level"] = scene.sky.level.sample(rng, n)
     return out
+
+
+def _sample_joint_light(
+    light: LensLightSpec, n: int, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
+    """Lens-light keys from the joint prior (:class:`LensLightSpec`): (mag, ln R, n, q)
+    jointly, then the position angle φ ~ U[0, π)."""
+    assert light.joint is not None
+    draw = light.joint.sample(rng, n)
+    phi = rng.uniform(0.0, math.pi, n)
+    e = (1.0 - draw["q"]) / (1.0 + draw["q"])
+    return {
+        "light_mag": draw["mag"],
+        "light_r": np.exp(draw["ln_r"]),
+        "light_n": draw["n"],
+        "light_e1": e * np.cos(2.0 * phi),
+        "light_e2": e * np.sin(2.0 * phi),
+    }
 
 
 def _sample_multi_sersic(

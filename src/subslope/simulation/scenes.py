@@ -23,7 +23,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from subslope.simulation.priors import PowerLaw, Prior, PriorError
+from subslope.simulation.priors import JointNormal, PowerLaw, Prior
+from subslope.simulation.spec_checks import SceneError
+from subslope.simulation.spec_checks import boolean as _bool
+from subslope.simulation.spec_checks import choice as _choice
+from subslope.simulation.spec_checks import prior_at as _prior
+from subslope.simulation.spec_checks import real as _real
+from subslope.simulation.spec_checks import within as _within
 
 __all__ = [
     "SceneError",
@@ -45,6 +51,8 @@ __all__ = [
     "MultipoleSpec",
     "ShearSpec",
     "LensLightSpec",
+    "JOINT_LIGHT_NAMES",
+    "SkySpec",
     "SubhaloSpec",
     "LosSpec",
     "ConcentrationSpec",
@@ -65,10 +73,6 @@ MAX_SOURCE_COMPONENTS = 8
 #: Per-component macro keys of the multi-Sérsic source (``src_<name>_<k>``).
 MULTI_SERSIC_KEYS = ("frac", "r", "n", "e1", "e2", "dx", "dy")
 COSMOS_SPLITS = ("train", "validation", "test")
-
-
-class SceneError(PriorError):
-    """A scene configuration is malformed; the message names the config key."""
 
 
 def _load_presets() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
@@ -132,46 +136,6 @@ def merge_onto_preset(name: str, spec: Mapping[str, Any] | None, key: str) -> di
 
 
 # ---------------------------------------------------------------------------- specs
-def _prior(d: Mapping[str, Any], k: str, key: str) -> Prior:
-    return Prior.from_config(d[k], f"{key}.{k}")
-
-
-def _choice(value: Any, allowed: tuple[str, ...], key: str) -> str:
-    if value not in allowed:
-        raise SceneError(
-            f"config key {key} = {value!r} is not allowed; allowed: {', '.join(allowed)}"
-        )
-    return value
-
-
-def _real(value: Any, key: str, lo: float, hi: float, lo_open=False, hi_open=False) -> float:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if ok:
-        ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
-    if not ok:
-        left, right = "(" if lo_open else "[", ")" if hi_open else "]"
-        raise SceneError(
-            f"config key {key} = {value!r} must be a number in {left}{lo}, {hi}{right}"
-        )
-    return float(value)
-
-
-def _bool(value: Any, key: str) -> bool:
-    if not isinstance(value, bool):
-        raise SceneError(f"config key {key} = {value!r} must be true or false")
-    return value
-
-
-def _within(p: Prior, key: str, lo: float, hi: float, open_: bool = False) -> Prior:
-    s_lo, s_hi = p.support
-    if (s_lo <= lo or s_hi >= hi) if open_ else (s_lo < lo or s_hi > hi):
-        where = f"({lo}, {hi})" if open_ else f"[{lo}, {hi}]"
-        raise SceneError(
-            f"config key {key}: support [{s_lo}, {s_hi}] of the prior must lie within {where}"
-        )
-    return p
-
-
 def _multi_sersic(d: Any, key: str) -> MultiSersicSpec:
     if not isinstance(d, Mapping):
         raise SceneError(f"config key {key} = {d!r} must be a mapping")
@@ -221,6 +185,7 @@ class Components:
     shear: bool = True
     subhalos: bool = True
     los: bool = True
+    sky: bool = False
 
 
 @dataclass(frozen=True)
@@ -313,15 +278,34 @@ class ShearSpec:
     g2: Prior
 
 
+#: Parameters of the joint lens-light prior, in this order: AB magnitude, ln of the
+#: half-light radius (ln arcsec), Sérsic index and axis ratio.
+JOINT_LIGHT_NAMES = ("mag", "ln_r", "n", "q")
+
+
 @dataclass(frozen=True)
 class LensLightSpec:
-    """Elliptical Sérsic lens light centred on the lens (AB mag, arcsec)."""
+    """Elliptical Sérsic lens light centred on the lens (AB mag, arcsec).
+
+    With ``joint`` set, (mag, ln R, n, q) are drawn together from that multivariate
+    normal (:data:`JOINT_LIGHT_NAMES`) and the position angle uniformly in [0, π), and
+    the five one-dimensional priors are not used; e = (1 − q)/(1 + q),
+    (e1, e2) = e (cos 2φ, sin 2φ)."""
 
     mag: Prior
     r_sersic: Prior
     n_sersic: Prior
     e1: Prior
     e2: Prior
+    joint: JointNormal | None = None
+
+
+@dataclass(frozen=True)
+class SkySpec:
+    """A constant sky level per image (e⁻/s per pixel), added after the PSF: what the
+    sky subtraction of real cutouts leaves (``components.sky``)."""
+
+    level: Prior
 
 
 @dataclass(frozen=True)
@@ -382,6 +366,7 @@ class Scene:
     subhalos: SubhaloSpec
     los: LosSpec
     concentration: ConcentrationSpec
+    sky: SkySpec
 
     @property
     def has_label(self) -> bool:
@@ -438,6 +423,7 @@ class Scene:
             _subhalo_spec(d["subhalos"], f"{key}.subhalos"),
             _los_spec(d["los"], f"{key}.los"),
             _concentration_spec(d["concentration"], f"{key}.concentration"),
+            SkySpec(_prior(d["sky"], "level", f"{key}.sky")),
         )
 
 
@@ -479,8 +465,19 @@ def _main_lens_spec(m: Mapping[str, Any], k: str) -> MainLensSpec:
 
 
 def _lens_light_spec(ll: Mapping[str, Any], k: str) -> LensLightSpec:
+    joint = None
+    if ll.get("joint") is not None:
+        joint = JointNormal.from_config(ll["joint"], f"{k}.joint", JOINT_LIGHT_NAMES)
+        for name, lo, hi in (("n", 0.2, 10.0), ("q", 0.05, 1.0)):
+            i = JOINT_LIGHT_NAMES.index(name)
+            if joint.low[i] < lo or joint.high[i] > hi:
+                raise SceneError(
+                    f"config key {k}.joint: the box of {name} [{joint.low[i]}, "
+                    f"{joint.high[i]}] must lie within [{lo}, {hi}]"
+                )
     light = LensLightSpec(
-        **{p: _prior(ll, p, k) for p in ("mag", "r_sersic", "n_sersic", "e1", "e2")}
+        **{p: _prior(ll, p, k) for p in ("mag", "r_sersic", "n_sersic", "e1", "e2")},
+        joint=joint,
     )
     _within(light.r_sersic, f"{k}.r_sersic", 1e-6, math.inf)
     _within(light.n_sersic, f"{k}.n_sersic", 0.2, 10.0)

@@ -3,12 +3,18 @@ the galaxies of a split, each stamp cleaned of its sky noise and placed at its i
 source redshift (``docs/simulation.md``, "Sources").
 
 Cleaning (``simulation.sources.clean``, :func:`subslope.io.cosmos.clean_stamp`) keeps
-the central galaxy's footprint and zeroes the stamp's sky noise around it. Renormalising
-a faint stamp to a bright magnitude multiplies the noise left inside that footprint too:
-``max_noise_fraction`` drops every galaxy whose stamp noise, once placed at
-``reference_z_source``, renormalised to the brightest magnitude of ``mag_renormalize``
-and seen through the PSF, exceeds that fraction of the detector's background σ per
-pixel (:func:`noise_fraction`).
+the central galaxy's footprint and zeroes the stamp's sky noise around it; with
+``denoise: wavelet`` the stamp is first denoised (:func:`subslope.io.cosmos.denoise_stamp`),
+which leaves ~⅓ of its noise inside the footprint
+(:func:`subslope.io.cosmos.residual_noise_ratio`). Renormalising a faint stamp to a bright
+magnitude multiplies the noise left inside that footprint too: :func:`noise_fraction` is
+that noise, once placed at ``reference_z_source``, renormalised to the brightest
+magnitude of ``mag_renormalize`` and seen through the PSF, as a fraction of the
+detector's background σ per pixel. A galaxy above ``max_noise_fraction`` is dropped
+(``noisy: drop``) or dimmed (``noisy: dim``): its magnitudes are drawn from the brightest
+at which it meets the limit (:func:`brightest_magnitude`) to the faintest of
+``mag_renormalize``, and it is dropped only when that leaves less than
+``min_magnitude_range``.
 """
 
 from __future__ import annotations
@@ -26,8 +32,10 @@ from subslope.io.cosmos import (
     CosmosCatalog,
     CosmosCuts,
     clean_stamp,
+    denoise_stamp,
     normalize_to_magnitude,
     place_at_redshift,
+    residual_noise_ratio,
     split_idents,
 )
 from subslope.physics.light.pixelated import pad_stamps
@@ -39,9 +47,11 @@ __all__ = [
     "source_split",
     "source_table",
     "noise_fraction",
+    "brightest_magnitude",
     "place_source",
     "pixelated_sources",
     "draw_sources",
+    "cleaning_examples",
 ]
 
 log = logging.getLogger(__name__)
@@ -56,7 +66,9 @@ SOURCE_COLUMNS = (
     "ny",
     "peak_snr",
     "footprint_fraction",
+    "noise_ratio",
     "noise_fraction",
+    "brightest_mag",
     "selected",
     "split",
 )
@@ -77,29 +89,72 @@ def cosmos_folders(config: Mapping[str, Any]) -> list[Path]:
 
 
 def _cleaning(src: Mapping[str, Any]) -> tuple | None:
+    """``(threshold, smoothing, dilate, taper, denoise, wavelet, denoise_smoothing)`` of
+    ``simulation.sources.clean``, or None when cleaning is off."""
     c = src.get("clean") or {}
     if not c.get("enabled", False):
         return None
-    return (float(c["threshold"]), float(c["smoothing"]), int(c["dilate"]), float(c["taper"]))
+    return (
+        float(c["threshold"]),
+        float(c["smoothing"]),
+        int(c["dilate"]),
+        float(c["taper"]),
+        str(c.get("denoise", "none")),
+        str(c.get("denoise_wavelet", "db2")),
+        float(c.get("denoise_smoothing", 1.0)),
+    )
+
+
+def _footprint(folders, ident: int, cleaning: tuple):
+    cat = catalog_at(folders)
+    t, s, d, tp = cleaning[:4]
+    return clean_stamp(
+        cat.stamp(ident), cat.noise_sigma(ident), threshold=t, smoothing=s, dilate=d, taper=tp
+    )
 
 
 @functools.lru_cache(maxsize=4096)
 def _clean(folders, ident: int, cleaning: tuple) -> np.ndarray:
-    cat = catalog_at(folders)
-    t, s, d, tp = cleaning
-    out = clean_stamp(
-        cat.stamp(ident), cat.noise_sigma(ident), threshold=t, smoothing=s, dilate=d, taper=tp
-    ).image
+    cs = _footprint(folders, ident, cleaning)
+    if cleaning[4] == "wavelet":
+        cat = catalog_at(folders)
+        out = denoise_stamp(
+            cat.stamp(ident), cat.noise_sigma(ident), wavelet=cleaning[5], smoothing=cleaning[6]
+        )
+        out = out * cs.weight
+    else:
+        out = cs.image
     out.setflags(write=False)
     return out
+
+
+@functools.lru_cache(maxsize=4096)
+def _noise_ratio(folders, ident: int, cleaning: tuple | None) -> float:
+    """Stamp noise left inside the footprint, in units of the stamp's σ (1: not denoised)."""
+    if cleaning is None or cleaning[4] != "wavelet":
+        return 1.0
+    cat = catalog_at(folders)
+    cs = _footprint(folders, ident, cleaning)
+    return residual_noise_ratio(
+        cat.stamp(ident),
+        cat.noise_sigma(ident),
+        cs.weight,
+        wavelet=cleaning[5],
+        smoothing=cleaning[6],
+        seed=int(ident) % (2**32),
+    )
+
+
+def _folders_key(catalog: CosmosCatalog):
+    folders = tuple(dict.fromkeys(str(f) for f in catalog.table["folder"]))
+    return folders if len(folders) > 1 else folders[0]
 
 
 def _stamp(catalog: CosmosCatalog, src: Mapping[str, Any], ident: int) -> np.ndarray:
     cleaning = _cleaning(src)
     if cleaning is None:
         return catalog.stamp(ident)
-    folders = tuple(dict.fromkeys(str(f) for f in catalog.table["folder"]))
-    return _clean(folders if len(folders) > 1 else folders[0], int(ident), cleaning)
+    return _clean(_folders_key(catalog), int(ident), cleaning)
 
 
 def noise_fraction(
@@ -112,11 +167,13 @@ def noise_fraction(
 ) -> float:
     """Stamp noise of galaxy ``ident`` after placement at ``clean.reference_z_source`` and
     renormalisation to the brightest ``mag_renormalize`` magnitude (none: its own flux),
-    as a fraction of the detector's background σ per pixel: σ_stamp·f·Δ²·‖PSF‖₂ / σ_det,
-    with ``f`` the factor placement and renormalisation multiply the stamp by, Δ the
-    detector pixel (arcsec; a lensed pixel samples one source-plane point, so surface
-    brightness noise becomes σ_sb·Δ² per pixel) and ‖PSF‖₂ = (Σ psf²)^½ the factor by
-    which the PSF lowers white pixel noise."""
+    as a fraction of the detector's background σ per pixel: ρ·σ_stamp·f·Δ²·‖PSF‖₂ / σ_det,
+    with ρ the noise ratio left by the denoiser (1 without), ``f`` the factor placement
+    and renormalisation multiply the stamp by, Δ the detector pixel (arcsec; a lensed
+    pixel samples one source-plane point, so surface brightness noise becomes σ_sb·Δ² per
+    pixel) and ‖PSF‖₂ = (Σ psf²)^½ the factor by which the PSF lowers white pixel noise
+    (exact for white noise; the denoiser's residue is correlated, which the PSF lowers
+    less)."""
     row = catalog.table.loc[catalog.table["ident"] == int(ident)].iloc[0]
     z_ref = float((src.get("clean") or {}).get("reference_z_source", 0.7))
     stamp = _stamp(catalog, src, ident)
@@ -128,17 +185,36 @@ def noise_fraction(
         sb = normalize_to_magnitude(sb, pix, float(min(renorm)), zero_point)
     peak = int(np.argmax(np.abs(stamp)))
     factor = float(sb.flat[peak] / stamp.flat[peak]) if stamp.flat[peak] != 0 else 0.0
-    sigma_sb = catalog.noise_sigma(ident) * factor
+    ratio = _noise_ratio(_folders_key(catalog), int(ident), _cleaning(src))
+    sigma_sb = catalog.noise_sigma(ident) * ratio * factor
     return float(sigma_sb * inst.pixel_scale**2 * psf_norm / inst.background_sigma)
 
 
+def brightest_magnitude(fraction: float, src: Mapping[str, Any]) -> float:
+    """The brightest renormalised magnitude at which a galaxy with noise fraction
+    ``fraction`` (at the brightest ``mag_renormalize`` magnitude, :func:`noise_fraction`)
+    meets ``clean.max_noise_fraction``: the noise scales with the flux, so
+    m = m_bright + 2.5 log10(fraction / limit) when over the limit (m_bright otherwise);
+    NaN without renormalisation or limit."""
+    renorm = src.get("mag_renormalize")
+    limit = (src.get("clean") or {}).get("max_noise_fraction")
+    if not renorm or limit is None:
+        return float("nan")
+    bright = float(min(renorm))
+    if fraction <= limit:
+        return bright
+    return bright + 2.5 * float(np.log10(fraction / float(limit)))
+
+
 def source_table(config: Mapping[str, Any]) -> pd.DataFrame:
-    """Every galaxy of the configured catalogues with its cuts: ``ident, folder, mag_auto,
-    zphot, peak_snr, footprint_fraction, noise_fraction, selected, split``."""
+    """Every galaxy of the configured catalogues with its cuts (:data:`SOURCE_COLUMNS`):
+    the stamp's peak S/N and footprint, the noise ratio the denoiser leaves, the noise
+    fraction, the brightest magnitude it may be drawn at, ``selected`` and ``split``."""
     src = config["simulation"]["sources"]
     inst, zp, psf_norm = _noise_model(config)
     cat = catalog_at(_key(cosmos_folders(config)))
     c = src.get("clean") or {}
+    cleaning = _cleaning(src)
     rows = []
     for ident in cat.idents:
         cs = clean_stamp(
@@ -149,12 +225,15 @@ def source_table(config: Mapping[str, Any]) -> pd.DataFrame:
             dilate=int(c.get("dilate", 2)),
             taper=float(c.get("taper", 2.0)),
         )
+        frac = noise_fraction(cat, src, ident, zp, inst, psf_norm)
         rows.append(
             {
                 "ident": int(ident),
                 "peak_snr": cs.peak_snr,
                 "footprint_fraction": cs.footprint_fraction,
-                "noise_fraction": noise_fraction(cat, src, ident, zp, inst, psf_norm),
+                "noise_ratio": _noise_ratio(_folders_key(cat), int(ident), cleaning),
+                "noise_fraction": frac,
+                "brightest_mag": brightest_magnitude(frac, src),
             }
         )
     table = cat.table[["ident", "folder", "mag_auto", "zphot", "nx", "ny"]].merge(
@@ -235,17 +314,36 @@ def _noise_fractions(config_json: str) -> dict[int, float]:
     return {int(i): noise_fraction(cat, src, i, zp, inst, psf_norm) for i in cat.idents}
 
 
-def _noise_cut(config, selected: CosmosCatalog, limit: float) -> CosmosCatalog:
+def _fractions(config) -> dict[int, float]:
     from subslope.config import canonical_json
 
     keys = ("data", "instrument", "simulation")
-    fracs = _noise_fractions(canonical_json({k: config[k] for k in keys}))
+    return _noise_fractions(canonical_json({k: config[k] for k in keys}))
+
+
+def _dims(src: Mapping[str, Any]) -> bool:
+    c = src.get("clean") or {}
+    return c.get("noisy", "drop") == "dim" and bool(src.get("mag_renormalize"))
+
+
+def _noise_cut(config, selected: CosmosCatalog, limit: float) -> CosmosCatalog:
+    src = config["simulation"]["sources"]
+    fracs = _fractions(config)
     frac = np.array([fracs[int(i)] for i in selected.idents])
-    keep = selected.idents[frac <= limit]
-    dropped = selected.idents[frac > limit]
+    if _dims(src):
+        faint = float(max(src["mag_renormalize"]))
+        need = float((src.get("clean") or {}).get("min_magnitude_range", 0.5))
+        bright = np.array([brightest_magnitude(f, src) for f in frac])
+        ok = bright <= faint - need
+    else:
+        ok = frac <= limit
+    keep = selected.idents[ok]
+    dropped = selected.idents[~ok]
     log.info(
-        "COSMOS noise cut (stamp noise <= %g x detector noise): %d of %d galaxies kept; dropped %s",
+        "COSMOS noise cut (stamp noise <= %g x detector noise, %s): %d of %d galaxies kept; "
+        "dropped %s",
         limit,
+        "dimmed where needed" if _dims(src) else "dropped above",
         keep.size,
         frac.size,
         dropped.tolist()[:20],
@@ -304,8 +402,9 @@ def draw_sources(
     zero_point: float,
 ) -> tuple[dict[str, np.ndarray], list[np.ndarray], tuple[int, int] | None]:
     """One COSMOS galaxy per image (uniform over the scene's split), placed at its
-    z_source: ``(per-image source records, stamps, padded stamp shape)``; nothing for a
-    parametric source."""
+    z_source and renormalised (``mag_renormalize``; a dimmed galaxy from its own
+    brightest magnitude): ``(per-image source records, stamps, padded stamp shape)``;
+    nothing for a parametric source."""
     n = len(macro["z_source"])
     if sc.source.kind != "cosmos":
         return {}, [], None
@@ -313,7 +412,14 @@ def draw_sources(
     catalog, ids = source_split(config, sc.source.split)
     pick = ids[rng.integers(0, ids.size, n)]
     renorm = src["mag_renormalize"]
-    mags = rng.uniform(renorm[0], renorm[1], n) if renorm else None
+    mags = None
+    if renorm:
+        lo, hi = float(renorm[0]), float(renorm[1])
+        if _dims(src):  # each galaxy from its own brightest magnitude (module docstring)
+            fracs = _fractions(config)
+            bright = {int(i): brightest_magnitude(fracs[int(i)], src) for i in ids}
+            lo = np.array([max(lo, bright[int(i)]) for i in pick])
+        mags = lo + (hi - lo) * rng.uniform(0.0, 1.0, n)
     pix = np.empty(n)
     zphot = np.empty(n)
     stamps = []
@@ -332,3 +438,24 @@ def draw_sources(
     if mags is not None:
         sources["mag"] = mags
     return sources, stamps, pad_shape
+
+
+def cleaning_examples(config: Mapping[str, Any], n: int = 4):
+    """``(ident, raw, footprint only, cleaned, σ)`` of ``n`` galaxies of the configured
+    catalogues spread over the stamp S/N (for :func:`subslope.figures.domain.source_cleaning`);
+    ``cleaned`` is the stamp the simulations use (denoised in its footprint when
+    ``clean.denoise`` is on)."""
+    src = config["simulation"]["sources"]
+    cleaning = _cleaning(src) or (3.0, 1.0, 2, 2.0, "wavelet", "db2", 1.0)
+    cat = catalog_at(_key(cosmos_folders(config)))
+    folders = _folders_key(cat)
+    snr = np.array([cat.stamp(i).max() / cat.noise_sigma(i) for i in cat.idents])
+    order = np.argsort(snr)
+    picks = order[np.linspace(0, order.size - 1, min(n, order.size)).round().astype(int)]
+    out = []
+    for k in picks:
+        ident = int(cat.idents[k])
+        raw = cat.stamp(ident)
+        foot = _footprint(folders, ident, cleaning).image
+        out.append((ident, raw, foot, _clean(folders, ident, cleaning), cat.noise_sigma(ident)))
+    return out

@@ -2,14 +2,16 @@
 check_domain; ``subslope domain-check``).
 
 - :func:`fit_hst_lens_light`: the PSF-convolved Sérsic fit of every HST lens's light
-  (arcs masked) and the lens-light prior that covers the fits
-  (:func:`subslope.physics.light.fit.prior_from_fits`), beside the shipped ``hst_fits``
-  preset; :func:`fit_hst_lens_light_job` takes them from the cache
-  (``simulation.shard_cache``) where a campaign (a systematics variant) already made
-  them from the same files, settings and code (:func:`lens_light_fit_key`);
+  (arcs masked, sky pedestal fitted) and the priors derived from the fits: the joint
+  lens-light prior (:func:`subslope.physics.light.fit.joint_prior_from_fits`, beside the
+  shipped ``hst_joint`` preset), the sky level and the old uniform boxes;
+  :func:`fit_hst_lens_light_job` takes them from the cache (``simulation.shard_cache``)
+  where a campaign (a systematics variant) already made them from the same files,
+  settings and code (:func:`lens_light_fit_key`);
 - :func:`check_domain`: the statistics of :mod:`subslope.validation.domain` over the first
   ``domain.n_images`` images of a scene's shards and over the 13 HST cutouts, each lens's
-  percentile in the simulated distribution, the figures, and the COSMOS source table
+  percentile in the simulated distribution, the spread of every statistic (simulated
+  1–99% against the HST range), the figures, and the COSMOS source table
   (per-galaxy peak S/N, footprint and noise fraction, selection);
 - :func:`domain_check_cli`: the same check on images simulated in the process.
 """
@@ -37,15 +39,28 @@ from subslope.io.shard_cache import (
     take_files_from_cache,
 )
 from subslope.io.shards import file_sha256, open_shard
-from subslope.physics.light.fit import fit_lens_light, prior_from_fits
+from subslope.physics.cosmology import arcsec_to_mpc
+from subslope.physics.light.fit import (
+    fit_lens_light,
+    joint_prior_from_fits,
+    prior_from_fits,
+    sky_prior_from_fits,
+)
 from subslope.simulation.observing import build_instrument, build_psf
-from subslope.validation.domain import STATISTICS, domain_percentiles, image_statistics
+from subslope.validation.domain import (
+    STATISTICS,
+    border_level,
+    domain_percentiles,
+    image_statistics,
+    spread_table,
+)
 
 __all__ = [
     "fit_hst_lens_light",
     "fit_hst_lens_light_job",
     "lens_light_fit_key",
     "LENS_LIGHT_FILES",
+    "JOINT_WIDEN",
     "check_domain",
     "domain_check_cli",
     "shard_images",
@@ -53,10 +68,16 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Factor on the standard deviations of the fits in the joint lens-light prior: the 13
+#: fits are a small sample of the population, and every lens must stay inside the
+#: domain check's 1–99% bounds.
+JOINT_WIDEN = 1.5
+
 
 def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior) -> pd.DataFrame:
-    """Fit the lens light of every HST cutout; write the fits (one row per system) to
-    ``out_csv`` and the covering prior, with the shipped ``hst_fits`` preset beside it,
+    """Fit the lens light of every HST cutout; write the fits (one row per system, with
+    the fitted sky pedestal ``sky``, the border level and R_s in kpc at z_lens) to
+    ``out_csv`` and the derived priors, with the shipped ``hst_joint`` preset beside them,
     to ``out_prior`` (YAML)."""
     import yaml
 
@@ -91,20 +112,25 @@ def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior
             "chi2_dof": fit.chi2_dof,
             "used_fraction": fit.mask.mean((1, 2)),
             "cutout_mag": inst.magnitude_zero_point - 2.5 * np.log10(images.sum((1, 2))),
+            "sky": fit.background,
+            "border_level": border_level(images),
+            "r_kpc": fit.r_sersic * 1e3 * arcsec_to_mpc(np.array([o.z_lens for o in obs])),
         }
     )
     write_text(out_csv, table.to_csv(index=False, float_format="%.6g"))
-    derived = prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q)
+    joint = joint_prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q, widen=JOINT_WIDEN)
+    shipped = LENS_LIGHT_PRIORS["hst_joint"]["joint"]
     doc = {
-        "derived": derived,
-        "shipped_hst_fits": LENS_LIGHT_PRIORS["hst_fits"],
-        "shipped_equals_derived": derived == LENS_LIGHT_PRIORS["hst_fits"],
+        "derived_joint": joint,
+        "shipped_hst_joint": shipped,
+        "shipped_equals_derived": joint == shipped,
+        "derived_sky": sky_prior_from_fits(fit.background, widen=JOINT_WIDEN),
+        "derived_boxes": prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q),
     }
     write_text(out_prior, yaml.safe_dump(doc, sort_keys=False))
     if not doc["shipped_equals_derived"]:
         log.warning(
-            "the shipped hst_fits lens-light prior differs from the one derived now: %s",
-            derived,
+            "the shipped hst_joint lens-light prior differs from the one derived now: %s", joint
         )
     return table
 
@@ -176,14 +202,16 @@ def check_domain(
     whitening: tuple[float, float],
     hst_folder,
     out_dir,
-    figure_stems: tuple[str, str],
+    figure_stems: Sequence[str],
     *,
     scene: str,
 ) -> pd.DataFrame:
     """Statistics of the simulated ``images`` and the HST cutouts; writes
     ``domain_check.csv`` (one row per HST system: each statistic's percentile,
     ``inside``, ``outside``), ``statistics.csv`` (every image's statistics, ``kind`` sim
-    or hst) and ``sources.csv`` (the COSMOS galaxies) to ``out_dir`` and the two figures."""
+    or hst), ``spread.csv`` (:func:`subslope.validation.domain.spread_table`) and
+    ``sources.csv`` (the COSMOS galaxies) to ``out_dir`` and the figures: the histograms,
+    the gallery and, with a third stem and COSMOS sources, the cleaned stamps."""
     out_dir = Path(out_dir)
     dom = config["domain"]
     psf, inst = build_psf(config), build_instrument(config)
@@ -209,6 +237,8 @@ def check_domain(
         ignore_index=True,
     )
     write_text(out_dir / "statistics.csv", both.to_csv(index=False, float_format="%.6g"))
+    spread = spread_table(sim, real, bounds=tuple(dom["bounds"]))
+    write_text(out_dir / "spread.csv", spread.to_csv(index=False, float_format="%.4g"))
     _write_sources(config, out_dir / "sources.csv", scene)
     run = config["run_name"]
     save_figure(
@@ -221,8 +251,27 @@ def check_domain(
         figure_stems[1],
         run_name=run,
     )
+    if len(figure_stems) > 2:
+        _source_figure(config, scene, figure_stems[2])
     log.info("domain check: %d of %d HST lenses inside", int(table["inside"].sum()), len(table))
     return table
+
+
+def _source_figure(config: Mapping[str, Any], scene: str, stem: str) -> None:
+    """The COSMOS stamps before and after cleaning (an empty note for parametric sources)."""
+    from matplotlib.figure import Figure
+
+    from subslope.figures.domain import source_cleaning
+    from subslope.simulation.resolve import resolved_scene
+    from subslope.simulation.sources import cleaning_examples
+
+    run = config["run_name"]
+    if resolved_scene(config, scene)[0].source.kind == "cosmos":
+        fig = source_cleaning(cleaning_examples(config), run_name=run)
+    else:
+        fig = Figure(figsize=(4, 1))
+        fig.text(0.5, 0.5, f"scene {scene} draws parametric sources", ha="center")
+    save_figure(fig, stem, run_name=run)
 
 
 def _write_sources(config: Mapping[str, Any], path: Path, scene: str) -> None:
@@ -265,6 +314,6 @@ def domain_check_cli(
         white,
         Path(config["data"]["resources_dir"]) / "hst",
         out,
-        (str(out / "domain_check"), str(out / "domain_gallery")),
+        (str(out / "domain_check"), str(out / "domain_gallery"), str(out / "source_cleaning")),
         scene=scene,
     )

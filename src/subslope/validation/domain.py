@@ -11,8 +11,11 @@ Per image (:data:`STATISTICS`):
 - ``light_mag``, ``light_r``, ``light_n``, ``light_q``: the PSF-convolved Sérsic fit of
   the lens light with the arcs masked (:func:`subslope.physics.light.fit.fit_lens_light`);
 - ``arc_snr``: the peak of (image − fitted lens light) / σ over the annulus, σ² = σ_bg² +
-  max(model, 0)/t the detector noise of the fitted light;
-- ``bright_fraction``: the fraction of the mask's pixels above 3 σ_bg.
+  max(model, 0)/t the detector noise of the fitted light, with compact objects
+  (:func:`compact_objects`: companions, stars, cosmic-ray residue) masked first;
+- ``bright_fraction``: the fraction of the mask's pixels above 3 σ_bg;
+- ``border_level``: the sky level, the sigma-clipped median of the image's outer
+  ``BORDER`` pixels (:func:`border_level`).
 
 The lens centre is measured on every image with
 :func:`subslope.io.observations.find_lens_centre` (as for the HST lenses in the analysis);
@@ -32,7 +35,17 @@ from subslope.nre.preprocess import preprocess
 from subslope.physics.grid import pixel_grid
 from subslope.physics.light.fit import fit_lens_light
 
-__all__ = ["STATISTICS", "image_statistics", "domain_percentiles", "CENTRE_RADIUS", "ANNULUS"]
+__all__ = [
+    "STATISTICS",
+    "image_statistics",
+    "domain_percentiles",
+    "spread_table",
+    "border_level",
+    "compact_objects",
+    "CENTRE_RADIUS",
+    "ANNULUS",
+    "BORDER",
+]
 
 STATISTICS = (
     "white_mean",
@@ -45,11 +58,53 @@ STATISTICS = (
     "light_q",
     "arc_snr",
     "bright_fraction",
+    "border_level",
 )
 #: Radius of the central aperture, arcsec.
 CENTRE_RADIUS = 0.3
 #: Annulus of the arcs, in units of θ_E.
 ANNULUS = (0.7, 1.5)
+#: Width of the image frame of :func:`border_level`, pixels.
+BORDER = 5
+#: A compact object (:func:`compact_objects`): a connected region of at most this many
+#: pixels above this S/N, masked with a margin of this many pixels.
+COMPACT_SNR, COMPACT_MAX_PIXELS, COMPACT_MARGIN = 5.0, 16, 2
+
+
+def border_level(images, width: int = BORDER) -> np.ndarray:
+    """Sky level of each image ``(B, H, W)``: the 3σ-clipped median of its outer
+    ``width`` pixels on every side (astropy ``sigma_clipped_stats``), e⁻/s per pixel."""
+    from astropy.stats import sigma_clipped_stats
+
+    images = np.asarray(images, dtype=np.float64)
+    frame = np.ones(images.shape[1:], dtype=bool)
+    frame[width:-width, width:-width] = False
+    return np.array([sigma_clipped_stats(im[frame], sigma=3.0)[1] for im in images])
+
+
+def compact_objects(snr) -> np.ndarray:
+    """Mask ``(B, H, W)`` of the compact objects of S/N maps ``snr``: 8-connected regions
+    above :data:`COMPACT_SNR` with at most :data:`COMPACT_MAX_PIXELS` pixels, dilated by
+    :data:`COMPACT_MARGIN`. A lensed arc is larger and stays unmasked; a companion
+    galaxy's core, a star or a cosmic-ray residue is masked. The same rule runs on
+    simulated and real images."""
+    from scipy import ndimage
+
+    snr = np.asarray(snr, dtype=np.float64)
+    out = np.zeros(snr.shape, dtype=bool)
+    eight = np.ones((3, 3), dtype=bool)
+    for k, m in enumerate(snr):
+        labels, n = ndimage.label(m > COMPACT_SNR, structure=eight)
+        if n == 0:
+            continue
+        sizes = np.bincount(labels.ravel())
+        small = np.flatnonzero(sizes <= COMPACT_MAX_PIXELS)
+        small = small[small > 0]
+        if small.size:
+            out[k] = ndimage.binary_dilation(
+                np.isin(labels, small), structure=eight, iterations=COMPACT_MARGIN
+            )
+    return out
 
 
 def image_statistics(
@@ -120,6 +175,7 @@ def _chunk_statistics(images, theta_e, psf, sigma_bg, t_exp, whitening, pix, mas
     )
     sigma = np.sqrt(sigma_bg**2 + np.clip(fit.model, 0, None) / t_exp)
     snr = (images - fit.model) / sigma
+    arcs = annulus & ~compact_objects(snr)
 
     def over(mask, values, op):
         return np.array([op(values[k][mask[k]]) if mask[k].any() else np.nan for k in range(n)])
@@ -136,8 +192,9 @@ def _chunk_statistics(images, theta_e, psf, sigma_bg, t_exp, whitening, pix, mas
             "light_r": fit.r_sersic,
             "light_n": fit.n_sersic,
             "light_q": fit.q,
-            "arc_snr": over(annulus, snr, np.max),
+            "arc_snr": over(arcs, snr, np.max),
             "bright_fraction": over(inside, images > 3.0 * sigma_bg, np.mean),
+            "border_level": border_level(images),
         }
     )
 
@@ -174,3 +231,34 @@ def domain_percentiles(
     table["inside"] = ok
     table["outside"] = [";".join(b) for b in bad]
     return table
+
+
+def spread_table(
+    simulated: pd.DataFrame,
+    real: pd.DataFrame,
+    *,
+    bounds: tuple[float, float] = (1.0, 99.0),
+    statistics: Sequence[str] = STATISTICS,
+) -> pd.DataFrame:
+    """Per statistic: the simulated ``bounds`` percentiles (``sim_lo``, ``sim_hi``), the
+    real range (``hst_min``, ``hst_max``) and ``width_ratio``, the simulated width over
+    the real one: how much wider than the data the simulation is."""
+    rows = []
+    for stat in statistics:
+        sim = simulated[stat].to_numpy(dtype=np.float64)
+        sim = sim[np.isfinite(sim)]
+        val = real[stat].to_numpy(dtype=np.float64)
+        val = val[np.isfinite(val)]
+        lo, hi = np.percentile(sim, bounds) if sim.size else (np.nan, np.nan)
+        width = val.max() - val.min() if val.size else np.nan
+        rows.append(
+            {
+                "statistic": stat,
+                "sim_lo": lo,
+                "sim_hi": hi,
+                "hst_min": val.min() if val.size else np.nan,
+                "hst_max": val.max() if val.size else np.nan,
+                "width_ratio": (hi - lo) / width if width and width > 0 else np.nan,
+            }
+        )
+    return pd.DataFrame(rows)

@@ -7,9 +7,10 @@ Model of one image (e⁻/s per pixel): the elliptical Sérsic of
 
     θ = (mag, ln R_s, n, e1, e2, x, y, b)   (AB mag, ln arcsec, -, -, -, arcsec, arcsec, e⁻/s)
 
-with ``b`` a constant pedestal per pixel (what sky subtraction may have left; fitted only
-with ``pedestal=True``: on simulated lenses, which have none, it trades against the
-Sérsic wings and biases mag and R_s, see docs/simulation.md).
+with ``b`` a constant pedestal per pixel: the sky level that the cutouts' sky subtraction
+left (0.05–0.24 e⁻/s on the 13 HST lenses). Fitted by default (``pedestal=True``), the
+same on real and simulated images; without it a 4″ cutout turns the pedestal into Sérsic
+wings, R_s runs to the box edge and the magnitude 1–3 mag too bright (docs/realism.md).
 Fit: weighted least squares, χ² = Σ_p w_p (d_p − m_p(θ))², with w_p = mask_p / σ_p² and
 σ_p² = σ_bg² + max(d_p, 0) / t + (s·max(d_p, 0))² (background, the data's Poisson term
 and a model-error floor ``s`` = ``systematic``, so that a real galaxy's departures from
@@ -35,7 +36,17 @@ from subslope.physics.grid import pixel_grid
 from subslope.physics.instrument import ZERO_POINT, convolve
 from subslope.physics.light.sersic import e1e2_to_q_phi, sersic_ellipse_from_magnitude
 
-__all__ = ["BOUNDS", "PARAMS", "LightFit", "sersic_model", "fit_lens_light", "prior_from_fits"]
+__all__ = [
+    "BOUNDS",
+    "PARAMS",
+    "JOINT_BOX",
+    "LightFit",
+    "sersic_model",
+    "fit_lens_light",
+    "prior_from_fits",
+    "joint_prior_from_fits",
+    "sky_prior_from_fits",
+]
 
 #: Fitted parameters, in the order of θ.
 PARAMS = ("mag", "ln_r", "n", "e1", "e2", "x", "y", "b")
@@ -48,7 +59,7 @@ BOUNDS = {
     "e2": (-0.8, 0.8),
     "x": (-0.3, 0.3),
     "y": (-0.3, 0.3),
-    "b": (-0.05, 0.05),
+    "b": (-0.2, 1.0),
 }
 _STEPS = torch.tensor([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-5, 1e-6], dtype=torch.float64)
 
@@ -169,7 +180,7 @@ def fit_lens_light(
     clip: float | None = 3.0,
     systematic: float = 0.02,
     iterations: int = 10,
-    pedestal: bool = False,
+    pedestal: bool = True,
 ) -> LightFit:
     """Fit the lens light of ``images`` ``(B, H, W)`` (e⁻/s per pixel) with the arcs masked.
 
@@ -268,4 +279,50 @@ def prior_from_fits(
         "n_sersic": uniform(max(0.5, n.min() - n_margin), min(8.0, n.max() + n_margin)),
         "e1": uniform(-e, e),
         "e2": uniform(-e, e),
+    }
+
+
+#: Box of the joint lens-light prior (:func:`joint_prior_from_fits`): AB mag, ln R_s
+#: (R_s in 0.05–20″), Sérsic index and axis ratio.
+JOINT_BOX = {
+    "low": {"mag": 10.0, "ln_r": round(math.log(0.05), 4), "n": 0.5, "q": 0.2},
+    "high": {"mag": 25.0, "ln_r": round(math.log(20.0), 4), "n": 8.0, "q": 1.0},
+}
+
+
+def joint_prior_from_fits(
+    mag, r_sersic, n_sersic, q, *, widen: float = 1.5, digits: int = 5
+) -> dict[str, object]:
+    """The joint lens-light prior of fitted values (a config mapping of
+    :class:`subslope.simulation.priors.JointNormal`): the sample mean and covariance of
+    (mag, ln R_s, n, q) (``ddof = 1``), standard deviations times ``widen``, in
+    :data:`JOINT_BOX`; numbers rounded to ``digits`` significant digits."""
+    x = np.stack([np.asarray(v, dtype=np.float64) for v in (mag, np.log(r_sersic), n_sersic, q)])
+    if x.shape[1] < 5:
+        raise ValueError(f"a joint prior needs at least 5 fits, got {x.shape[1]}")
+
+    def sig(v: float) -> float:
+        return float(f"{v:.{digits}g}")
+
+    names = ("mag", "ln_r", "n", "q")
+    cov = np.cov(x, ddof=1)
+    return {
+        "mean": {k: sig(m) for k, m in zip(names, x.mean(axis=1), strict=True)},
+        "cov": [[sig(v) for v in row] for row in cov],
+        "widen": float(widen),
+        "low": dict(JOINT_BOX["low"]),
+        "high": dict(JOINT_BOX["high"]),
+    }
+
+
+def sky_prior_from_fits(background, *, widen: float = 1.5, digits: int = 3) -> dict[str, object]:
+    """The sky-level prior of fitted pedestals (e⁻/s per pixel): a normal of their mean
+    and ``widen`` × their standard deviation (``ddof = 1``) truncated at 0, as a config
+    mapping."""
+    b = np.asarray(background, dtype=np.float64)
+    return {
+        "dist": "normal",
+        "mean": float(f"{b.mean():.{digits}g}"),
+        "std": float(f"{widen * b.std(ddof=1):.{digits}g}"),
+        "low": 0.0,
     }
