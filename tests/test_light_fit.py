@@ -135,20 +135,21 @@ def test_hst_joint_preset_is_the_prior_of_the_pedestal_fits_and_they_are_plausib
     assert sky["low"] == 0.0 and 0.03 < sky["mean"] < 0.12
 
 
-def test_hst_fits_preset_is_the_box_of_the_fits_without_a_pedestal(data_dir):
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
-
+def test_without_the_pedestal_the_hst_sky_becomes_sersic_wings(data_dir):
+    _, with_b = _hst_fits(data_dir)
     _, fit = _hst_fits(data_dir, pedestal=False)
-    derived = prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q)
-    assert {k: v for k, v in LENS_LIGHT_PRIORS["hst_fits"].items() if k != "joint"} == derived
-    # without the pedestal the sky becomes Sérsic wings: R at the box edge, too bright
-    assert np.sum(fit.r_sersic > 19.0) >= 3 and np.all(fit.mag < 16.5)
+    # R runs to the fit box's edge and the lenses come out brighter than with the pedestal
+    assert np.sum(fit.r_sersic > 9.9) >= 3 and np.all(fit.r_sersic >= with_b.r_sersic)
+    assert np.all(fit.mag < with_b.mag) and np.all(fit.mag < 16.5)
+    # the older uniform boxes (preset hst_fits) came from such fits, with a 20" box
+    box = prior_from_fits(fit.mag, fit.r_sersic, fit.n_sersic, fit.q)
+    assert box["r_sersic"]["high"] == 10.0
 
 
 def test_prior_from_fits_rounds_outwards_and_clips():
     p = prior_from_fits([15.004, 16.0], [1.0, 30.0], [0.6, 9.0], [0.5, 1.0])
     assert p["mag"] == {"dist": "uniform", "low": 14.5, "high": 16.5}
-    assert p["r_sersic"]["low"] == 0.8 and p["r_sersic"]["high"] == 20.0
+    assert p["r_sersic"]["low"] == 0.8 and p["r_sersic"]["high"] == 10.0
     assert p["n_sersic"]["low"] == 0.5 and p["n_sersic"]["high"] == 8.0
     assert p["e1"] == {"dist": "uniform", "low": -0.39, "high": 0.39}
 

@@ -50,10 +50,12 @@ __all__ = [
 
 #: Fitted parameters, in the order of θ.
 PARAMS = ("mag", "ln_r", "n", "e1", "e2", "x", "y", "b")
-#: Box of each parameter (the centre's is relative to its starting value).
+#: Box of each parameter (the centre's is relative to its starting value). R_s ≤ 10″
+#: (~33 kpc at z = 0.2): beyond it a 4″ cutout cannot bound R_s, which then trades
+#: against n and the pedestal.
 BOUNDS = {
     "mag": (5.0, 35.0),
-    "ln_r": (math.log(0.02), math.log(20.0)),
+    "ln_r": (math.log(0.02), math.log(10.0)),
     "n": (0.3, 10.0),
     "e1": (-0.8, 0.8),
     "e2": (-0.8, 0.8),
@@ -272,7 +274,7 @@ def prior_from_fits(
         }
 
     e = float(np.max((1 - q) / (1 + q))) + e_margin
-    r_box = math.exp(BOUNDS["ln_r"][1])
+    r_box = round(math.exp(BOUNDS["ln_r"][1]), 9)
     return {
         "mag": uniform(mag.min() - mag_margin, mag.max() + mag_margin),
         "r_sersic": uniform(r.min() / r_factor, min(r.max() * r_factor, r_box)),
@@ -283,10 +285,11 @@ def prior_from_fits(
 
 
 #: Box of the joint lens-light prior (:func:`joint_prior_from_fits`): AB mag, ln R_s
-#: (R_s in 0.05–20″), Sérsic index and axis ratio.
+#: (R_s in 0.05–8″: 8″ is ~26 kpc at z = 0.2, twice the largest of the 13 HST fits),
+#: Sérsic index and axis ratio.
 JOINT_BOX = {
     "low": {"mag": 10.0, "ln_r": round(math.log(0.05), 4), "n": 0.5, "q": 0.2},
-    "high": {"mag": 25.0, "ln_r": round(math.log(20.0), 4), "n": 8.0, "q": 1.0},
+    "high": {"mag": 25.0, "ln_r": round(math.log(8.0), 4), "n": 8.0, "q": 1.0},
 }
 
 
