@@ -183,6 +183,15 @@ def _domain_section(domain_csv) -> list[str]:
     ]
     if out:
         lines.append(_md_table(out, ["system", "outside"]))
+    spread = Path(domain_csv).with_name("spread.csv")
+    if spread.is_file():
+        widths = pd.read_csv(spread).dropna(subset=["width_ratio"])
+        if len(widths):
+            top = widths.loc[widths["width_ratio"].idxmax()]
+            lines.append(
+                f"The simulated 1–99% range is at most {top['width_ratio']:.1f}× the HST "
+                f"range ({top['statistic']}; results/check_domain/spread.csv).\n"
+            )
     return lines
 
 
