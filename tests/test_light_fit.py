@@ -56,6 +56,25 @@ def test_noise_free_sersic_is_recovered_exactly():
     assert np.all(fit.chi2_dof < 1e-3)
 
 
+def test_float32_model_agrees_with_the_float64_reference():
+    truth = torch.tensor(
+        [[16.0, np.log(1.5), 4.0, 0.1, -0.05, 0.03, -0.02, 0.05]], dtype=torch.float64
+    )
+    xs, ys = pixel_grid(100, 0.04, dtype=torch.float64)
+    images = sersic_model(truth, (xs[None], ys[None]), torch.as_tensor(PSF), 0.04).numpy()
+    images = images + np.random.default_rng(0).normal(0, 0.004, images.shape)
+    kw = {"clip": None, "iterations": 20}
+    ref = _fit(images, truth[:, 5:7].numpy() + 0.02, [1.0], **kw)
+    f32 = _fit(images, truth[:, 5:7].numpy() + 0.02, [1.0], dtype=torch.float32, **kw)
+    np.testing.assert_allclose(f32.mag, ref.mag, atol=2e-3)
+    np.testing.assert_allclose(f32.r_sersic, ref.r_sersic, rtol=5e-3)
+    np.testing.assert_allclose(f32.n_sersic, ref.n_sersic, atol=1e-2)
+    np.testing.assert_allclose(f32.background, ref.background, atol=2e-4)
+    assert f32.model.dtype == np.float64 and np.all(np.isfinite(f32.model))
+    with pytest.raises(ValueError, match="dtype"):
+        _fit(images, [[0, 0]], [1.0], dtype=torch.float16)
+
+
 def test_recovery_on_simulated_lenses_with_arcs_and_noise():
     """Lens light from the hst_joint prior on a sky level, a lensed Sérsic source of
     20.5-22.5 mag and the detector noise: the arcs are masked, the light and the sky
