@@ -39,6 +39,7 @@ __all__ = [
     "fill_defaults",
     "validate",
     "cross_key_problems",
+    "light_fit_enabled",
     "active_stages",
     "STAGE_NEEDS",
     "BASE_KEY",
@@ -315,6 +316,7 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
 
     if stages["train"] and config["training"]["data"] == "stream":
         problems += _stream_problems(config)
+    problems += _inputs_problems(config)
     if stages["calibrate"]:
         need_scene("calibration.single_scene", cal["single_scene"])
         if need_scene("calibration.stack_scene", cal["stack_scene"]):
@@ -347,6 +349,28 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
         if not lo < hi:
             problems.append(f"config key domain.bounds = {[lo, hi]}: need low < high")
     return problems
+
+
+def _inputs_problems(config: Mapping[str, Any]) -> list[str]:
+    """``training.inputs`` against ``simulation.light_fit``."""
+    if (
+        config["training"]["inputs"] == "light_subtracted"
+        and config["simulation"]["light_fit"] is False
+    ):
+        return [
+            "config key simulation.light_fit = false: training.inputs = 'light_subtracted' "
+            "needs the lens-light fit of every image (auto or true)"
+        ]
+    return []
+
+
+def light_fit_enabled(config: Mapping[str, Any]) -> bool:
+    """Whether shard jobs fit and store the lens light of every image
+    (``simulation.light_fit``: ``auto`` = when ``training.inputs`` is ``light_subtracted``)."""
+    choice = config["simulation"]["light_fit"]
+    if choice == "auto":
+        return config["training"]["inputs"] == "light_subtracted"
+    return bool(choice)
 
 
 #: The scene whose images ``training.data: stream`` simulates while training.

@@ -87,6 +87,7 @@ rule check_domain:
             "instrument": config["instrument"],
             "lens_centre": config["hst"]["lens_centre"],
             "mask_factor": config["training"]["mask_factor"],
+            "inputs": config["training"]["inputs"],
             "sources": config["simulation"]["sources"],
         },
     script:

@@ -42,6 +42,8 @@ rule analyze_hst:
         hst=config["hst"],
         gamma_grid=GRID,
         pixel_scale=config["instrument"]["pixel_scale"],
+        # the detector of the lens-light fit of lens-light-subtracted inputs
+        instrument=config["instrument"],
         device=config["inference"]["device"],
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],

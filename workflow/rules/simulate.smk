@@ -55,6 +55,12 @@ rule compute_whitening:
     threads: 1
     resources:
         mem_mb=2000,
+    params:
+        # the input transform the statistics are measured after: a change reruns the job
+        inputs=lambda wildcards: {
+            "inputs": config["training"]["inputs"],
+            "instrument": config["instrument"],
+        },
     script:
         "../scripts/compute_whitening.py"
 

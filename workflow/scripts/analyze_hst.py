@@ -40,6 +40,7 @@ try:
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
         domain_csv=snakemake.input.domain or None,
+        config=snakemake.config,
     )
     logging.info("intervals:\n%s", table.to_string())
 except Exception:

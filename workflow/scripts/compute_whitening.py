@@ -7,9 +7,12 @@ from subslope.stages.simulate import compute_whitening
 
 log_to_file(snakemake.log[0])
 try:
-    result = compute_whitening(list(snakemake.input.shards), snakemake.output.json)
+    result = compute_whitening(
+        snakemake.config, list(snakemake.input.shards), snakemake.output.json
+    )
     logging.info(
-        "mean %.6g, std %.6g over %d images of %d shards",
+        "%s inputs: mean %.6g, std %.6g over %d images of %d shards",
+        result["inputs"]["kind"],
         result["mean"],
         result["std"],
         result["n_images"],

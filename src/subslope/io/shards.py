@@ -61,12 +61,14 @@ __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "REQUIRED_DATASETS",
+    "LIGHT_FIT_GROUP",
     "ShardError",
     "CheckedRows",
     "open_hdf5",
     "verify_shard",
     "Shard",
     "write_shard",
+    "with_light_fit",
     "open_shard",
     "canonical_json",
     "config_hash",
@@ -75,6 +77,9 @@ __all__ = [
 
 FORMAT_NAME = "subslope-shard"
 FORMAT_VERSION = 3
+
+#: Group of the optional per-image lens-light fit (``simulation.light_fit``).
+LIGHT_FIT_GROUP = "light_fit"
 
 #: Datasets every shard has (the estimator relies on these names).
 REQUIRED_DATASETS = (
@@ -133,6 +138,7 @@ def write_shard(
     subhalos: Mapping[str, np.ndarray],
     los: Mapping[str, np.ndarray],
     sources: Mapping[str, np.ndarray] | None = None,
+    light_fit: Mapping[str, np.ndarray] | None = None,
     attrs: Mapping[str, Any],
     overwrite: bool = False,
     compression: str | None = "gzip",
@@ -147,6 +153,8 @@ def write_shard(
     psf : 2-D PSF kernel.
     subhalos, los : flat arrays plus ``counts`` (N,); keys become ``<group>/<key>``.
     sources : per-image source arrays (COSMOS scenes) or None.
+    light_fit : per-image lens-light fit parameters (group :data:`LIGHT_FIT_GROUP`,
+        :mod:`subslope.physics.light.subtract`) or None.
     attrs : file attributes (dicts/lists are stored as canonical JSON strings); the
         format attributes, ``n_images`` and ``complete`` are added here.
     overwrite : replace an existing file (default: refuse with :class:`FileExistsError`).
@@ -160,6 +168,9 @@ def write_shard(
         raise ShardError(f"{path}: images must have shape (N, H, W), got {images.shape}")
     n, h, w = images.shape
     _check_arrays(path, n, params, sources, subhalos, los)
+    for key, values in (light_fit or {}).items():
+        if np.shape(values) != (n,):
+            raise ShardError(f"{path}: {LIGHT_FIT_GROUP}/{key} must have shape ({n},)")
 
     comp: dict[str, Any] = {}
     if compression == "gzip":
@@ -185,7 +196,7 @@ def write_shard(
             ("sources", sources or {}),
             ("subhalos", subhalos),
             ("los", los),
-        ):
+        ) + (((LIGHT_FIT_GROUP, light_fit),) if light_fit is not None else ()):
             g = f.create_group(group, track_order=False)
             for key in sorted(arrays):
                 _dataset(g, key, arrays[key], **comp)
@@ -195,6 +206,32 @@ def write_shard(
             f.attrs[key] = _attr_value(meta[key])
         f.attrs["complete"] = True  # last: marks a finished file
     return path
+
+
+def with_light_fit(
+    src: str | os.PathLike[str], dst: str | os.PathLike[str], light_fit: Mapping[str, np.ndarray]
+) -> Path:
+    """Write ``dst`` atomically: the shard ``src`` with the lens-light fit ``light_fit``
+    (arrays ``(N,)``, group :data:`LIGHT_FIT_GROUP`) added or replaced; its images and
+    every other dataset are copied unchanged."""
+    dst = Path(dst)
+    with h5py.File(src, "r") as f:
+        n = int(f["images"].shape[0])
+        if not f.attrs.get("complete", False):
+            raise ShardError(f"{src}: incomplete shard (no 'complete' attribute)")
+        for key, values in light_fit.items():
+            if np.shape(values) != (n,):
+                raise ShardError(f"{src}: {LIGHT_FIT_GROUP}/{key} must have shape ({n},)")
+        with atomic_write(dst) as tmp, h5py.File(tmp, "w", track_order=False) as out:
+            for name in f:
+                if name != LIGHT_FIT_GROUP:
+                    f.copy(f[name], out, name=name)
+            g = out.create_group(LIGHT_FIT_GROUP, track_order=False)
+            for key in sorted(light_fit):
+                _dataset(g, key, light_fit[key])
+            for key in sorted(f.attrs):
+                out.attrs[key] = f.attrs[key]
+    return dst
 
 
 def _check_arrays(path, n: int, params, sources, subhalos, los) -> None:

@@ -48,6 +48,7 @@ from subslope.io.shards import CheckedRows, open_hdf5
 from subslope.physics.instrument import PIXEL_SCALE
 from subslope.ragged import counts_to_offsets
 
+from .inputs import InputTransform, read_light_fit, shard_light_models
 from .preprocess import preprocess, read_whitening
 
 __all__ = ["ShardBatches", "batch_tensors", "make_loader", "read_labels", "shard_lengths"]
@@ -118,6 +119,8 @@ class ShardBatches(Dataset):
     drop_last: drop the last, partial batch of an epoch.
     pixel_scale, mask_factor: passed to ``preprocess``.
     require_label: demand ``params/gamma_sub`` in every shard.
+    inputs: the input transform applied before whitening (:mod:`subslope.nre.inputs`;
+        ``None``: the pixels as stored).
     """
 
     def __init__(
@@ -134,6 +137,7 @@ class ShardBatches(Dataset):
         pixel_scale: float = PIXEL_SCALE,
         mask_factor: float | None = 1.5,
         require_label: bool = True,
+        inputs: InputTransform | None = None,
     ):
         if not paths:
             raise ValueError("paths: need at least one shard")
@@ -149,7 +153,12 @@ class ShardBatches(Dataset):
         self.whitening = None if whitening is None else read_whitening(whitening)
         self.shuffle, self.seed, self.drop_last = bool(shuffle), int(seed), bool(drop_last)
         self.pixel_scale, self.mask_factor = pixel_scale, mask_factor
+        self.inputs = inputs or InputTransform()
         self.lengths = shard_lengths(self.paths, require_label=require_label)
+        if self.inputs.needs_light:
+            for p in self.paths:
+                with open_hdf5(p) as fh:
+                    read_light_fit(p, fh, 0, 0)
         self.offsets = counts_to_offsets(np.asarray(self.lengths))
         self.n_images = int(self.offsets[-1])
         if self.n_images == 0:
@@ -232,7 +241,7 @@ class ShardBatches(Dataset):
     def __getitem__(self, b: int) -> dict[str, torch.Tensor]:
         blk, shard, rows = self.batch_rows(int(b))
         n = len(rows)
-        images = None
+        images = light = None
         params = {k: np.empty(n, dtype=np.float32) for k in PARAM_KEYS}
         for bk in np.unique(blk):  # one contiguous read per block touched
             sel = np.flatnonzero(blk == bk)
@@ -243,6 +252,9 @@ class ShardBatches(Dataset):
             if images is None:
                 images = np.empty((n, *chunk.shape[1:]), dtype=np.float32)
             images[sel] = chunk[rows[sel] - lo]
+            if self.inputs.needs_light:
+                light = np.empty_like(images) if light is None else light
+                light[sel] = shard_light_models(self.paths[s], fh, lo, hi)[rows[sel] - lo]
             for k in PARAM_KEYS:
                 if f"params/{k}" in fh:
                     rows_k = CheckedRows(self.paths[s], fh[f"params/{k}"])[lo:hi]
@@ -250,7 +262,7 @@ class ShardBatches(Dataset):
                 else:  # unlabelled shard (require_label=False)
                     params[k][sel] = np.nan
         return batch_tensors(
-            images,
+            self.inputs.apply(images, light),
             params,
             self.offsets[shard] + rows,
             self.whitening,

@@ -1,7 +1,8 @@
 """The trained estimator on the γ grid: ``ln r̂(x|γ_g)`` of every image (float64).
 
-Images go through the same pre-processing as in training (whitening with the training
-statistics and the circular mask of ``mask_factor`` × θ_E about the lens centre,
+Images go through the same pre-processing as in training (the input transform of
+:mod:`subslope.nre.inputs`, whitening with the training statistics and the circular
+mask of ``mask_factor`` × θ_E about the lens centre,
 :mod:`subslope.nre.preprocess`); the trunk runs once per image and the head on every
 (image, γ) pair (:meth:`subslope.nre.models.RatioEstimator.log_ratio_grid`).
 """
@@ -12,12 +13,22 @@ import numpy as np
 import torch
 
 from subslope.devices import pick_device
+from subslope.nre.inputs import InputTransform
 from subslope.nre.preprocess import preprocess, read_whitening
 from subslope.nre.training_config import training_defaults
 from subslope.physics.instrument import PIXEL_SCALE
 from subslope.stats.intervals import check_grid
 
 __all__ = ["log_ratio_profiles", "estimator_profiles"]
+
+
+def _check_call(inputs: InputTransform, light, images, batch_size) -> None:
+    if inputs.needs_light and (light is None or len(light) != len(images)):
+        raise ValueError(
+            "inputs 'light_subtracted' need the fitted lens-light model of every image"
+        )
+    if int(batch_size) != batch_size or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
 
 
 def log_ratio_profiles(
@@ -33,6 +44,8 @@ def log_ratio_profiles(
     device=None,
     pixel_scale: float = PIXEL_SCALE,
     mask_factor: float | None = 1.5,
+    inputs: InputTransform | None = None,
+    light=None,
 ) -> np.ndarray:
     """``ln r̂(x_b|γ_g)`` of every image on the grid: ``(B, G)`` float64.
 
@@ -57,10 +70,13 @@ def log_ratio_profiles(
         ``None``: CUDA when available, else CPU (decided at call time).
     pixel_scale, mask_factor:
         Pre-processing; pass ``metadata["preprocess"]`` values of the checkpoint.
+    inputs, light:
+        The input transform (``None``: the pixels as given) and, where it subtracts the
+        lens light, the fitted model of every image (sliced like ``images``).
     """
     g = check_grid(gammas)
-    if int(batch_size) != batch_size or batch_size < 1:
-        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    inputs = inputs or InputTransform()
+    _check_call(inputs, light, images, batch_size)
     mean, std = read_whitening(whitening)
     n = len(images)
     te, cx, cy = (
@@ -81,7 +97,7 @@ def log_ratio_profiles(
                     f"images must have shape (B, H, W), got a batch of shape {x.shape}"
                 )
             x = preprocess(
-                x,
+                inputs.apply(x, light[s:e] if inputs.needs_light else None),
                 te[s:e],
                 cx[s:e],
                 cy[s:e],
@@ -107,11 +123,13 @@ def estimator_profiles(
     batch_size: int = 64,
     device=None,
     pixel_scale: float | None = None,
+    light=None,
 ) -> np.ndarray:
-    """:func:`log_ratio_profiles` with the whitening and pre-processing the estimator was
-    trained with (``meta`` of :func:`subslope.nre.train.load_estimator`). A model file
-    without pre-processing metadata falls back on ``pixel_scale`` (if given) and on the
-    training defaults of the config schema."""
+    """:func:`log_ratio_profiles` with the input transform, whitening and pre-processing
+    the estimator was trained with (``meta`` of :func:`subslope.nre.train.load_estimator`);
+    ``light``: the fitted lens light of every image, for an estimator of lens-light-
+    subtracted inputs. A model file without pre-processing metadata falls back on
+    ``pixel_scale`` (if given) and on the training defaults of the config schema."""
     defaults = training_defaults()
     prep = meta.get("preprocess", {})
     fallback = defaults["pixel_scale"] if pixel_scale is None else pixel_scale
@@ -127,4 +145,6 @@ def estimator_profiles(
         device=None if device in (None, "auto") else device,
         pixel_scale=prep.get("pixel_scale", fallback),
         mask_factor=prep.get("mask_factor", defaults["mask_factor"]),
+        inputs=InputTransform.from_json(meta.get("inputs")),
+        light=light,
     )

@@ -29,7 +29,9 @@ import torch
 from subslope.io.atomic import read_json
 from subslope.physics.instrument import PIXEL_SCALE
 
-__all__ = ["preprocess", "read_whitening", "Whitening"]
+from .inputs import InputTransform
+
+__all__ = ["preprocess", "read_whitening", "read_inputs", "Whitening"]
 
 #: A ``(mean, std)`` pair of floats.
 Whitening = tuple[float, float]
@@ -61,6 +63,23 @@ def read_whitening(source) -> Whitening:
     if not (math.isfinite(mean) and math.isfinite(std) and std > 0):
         raise ValueError(f"{where}: need finite mean and std > 0, got mean={mean!r}, std={std!r}")
     return mean, std
+
+
+def read_inputs(source, expect: str | None = None) -> InputTransform:
+    """The input transform a whitening was measured after: its ``inputs`` entry (a JSON
+    path or a mapping; a ``(mean, std)`` pair or a file without the entry: ``whitened``).
+    ``expect``: the ``training.inputs`` it must have (a clear error otherwise)."""
+    if isinstance(source, (str, os.PathLike)):
+        source = read_json(source)
+    inputs = InputTransform()
+    if isinstance(source, Mapping):
+        inputs = InputTransform.from_json(source.get("inputs"))
+    if expect is not None and inputs.kind != expect:
+        raise ValueError(
+            f"training.inputs = {expect!r} but the whitening was measured on "
+            f"{inputs.kind!r} inputs: recompute it (snakemake -R compute_whitening)"
+        )
+    return inputs
 
 
 def _as_tensor(value, *, dtype=None, device=None) -> torch.Tensor:

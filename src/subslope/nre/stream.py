@@ -15,7 +15,9 @@ passed in by the caller (:class:`subslope.stages.train.SceneStream` simulates a
 scene of the campaign), so that this module needs nothing of the simulation:
 
 ``images(n, seed_sequence) -> (images (n, H, W) float32 e⁻/s, params)``
-    ``params`` holds at least ``gamma_sub``, ``theta_e``, ``lens_x``, ``lens_y`` ``(n,)``;
+    ``params`` holds at least ``gamma_sub``, ``theta_e``, ``lens_x``, ``lens_y`` ``(n,)``,
+    and ``light_model`` ``(n, H, W)`` (the fitted lens light) where the input transform
+    (``inputs``, set by the training run) subtracts it;
 ``labels(n, seed_sequence) -> (n,)``
     labels γ drawn from the same prior (cheap: no images), for the γ normalisation.
 """
@@ -29,6 +31,7 @@ from torch.utils.data import Dataset
 from subslope.physics.instrument import PIXEL_SCALE
 
 from .data import batch_tensors
+from .inputs import InputTransform
 from .preprocess import read_whitening
 
 __all__ = ["StreamBatches", "LABEL_SAMPLE"]
@@ -64,6 +67,7 @@ class StreamBatches(Dataset):
         self.simulator = simulator
         self.batch_size, self.n_batches = int(batch_size), int(n_batches)
         self.whitening = None if whitening is None else read_whitening(whitening)
+        self.inputs = InputTransform()
         self.seed = int(seed)
         self.pixel_scale, self.mask_factor = pixel_scale, mask_factor
         self.multiprocessing_context = multiprocessing_context
@@ -94,8 +98,14 @@ class StreamBatches(Dataset):
             raise IndexError(f"batch index {b} out of range for {len(self)} batches")
         images, params = self.simulator.images(self.batch_size, self.seed_sequence(b))
         index = int(b) * self.batch_size + np.arange(self.batch_size)
+        light = params.get("light_model") if self.inputs.needs_light else None
+        if self.inputs.needs_light and light is None:
+            raise ValueError(
+                "inputs 'light_subtracted': the stream's simulator gives no 'light_model' "
+                "(simulation.light_fit must be on)"
+            )
         return batch_tensors(
-            images,
+            self.inputs.apply(images, light),
             params,
             index,
             self.whitening,

@@ -52,9 +52,10 @@ from subslope.io.atomic import atomic_write
 
 from .checkpoints import CheckpointError, atomic_save, rng_state, set_rng_state, torch_load
 from .data import ShardBatches, make_loader, read_labels
+from .inputs import InputTransform
 from .loss import NRELoss
 from .models import RatioEstimator, build_model, model_card
-from .preprocess import read_whitening
+from .preprocess import read_inputs, read_whitening
 from .stream import StreamBatches
 from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
 
@@ -155,6 +156,7 @@ def train(
     cfg = resolve_config(config)
     chash = config_hash(cfg)
     device = pick_device(device, key="training.device")
+    inputs = read_inputs(whitening, expect=cfg["inputs"])
     whitening = read_whitening(whitening)
     out_dir, ckpt_dir = Path(out_dir), Path(ckpt_dir)
     ckpt_dir.mkdir(parents=True, exist_ok=True)
@@ -175,7 +177,7 @@ def train(
             chash,
             train_shards,
             val_shards,
-            whitening,
+            (whitening, inputs),
             out_dir,
             ckpt_dir,
             last_path,
@@ -454,7 +456,7 @@ def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
     _write_log(state["history"], out_dir / "training_log.csv")
 
 
-def _write_model(run: _Run, whitening, out_dir: Path) -> Path:
+def _write_model(run: _Run, whitening, inputs: InputTransform, out_dir: Path) -> Path:
     """``model.pt``: the best weights with everything needed to use them."""
     cfg = run.cfg
     best = torch_load(run.best_path, "cpu", f"delete {run.best_path.parent} to train afresh")
@@ -466,6 +468,7 @@ def _write_model(run: _Run, whitening, out_dir: Path) -> Path:
             "model": {k: v.cpu() for k, v in run.model.state_dict().items()},
             "model_card": model_card(run.model),
             "whitening": {"mean": whitening[0], "std": whitening[1]},
+            "inputs": inputs.to_json(),
             "gamma_norm": {"mean": float(run.model.gamma_mean), "std": float(run.model.gamma_std)},
             "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
             "config": cfg,
@@ -486,7 +489,7 @@ def _train(
     chash,
     train_shards,
     val_shards,
-    whitening,
+    prep,
     out_dir,
     ckpt_dir,
     last_path,
@@ -494,10 +497,11 @@ def _train(
     device,
     amp_dtype,
 ):
+    whitening, inputs = prep
     run = _start(cfg, chash, train_shards, device, amp_dtype, last_path, best_path)
     _resume(run, ckpt_dir)
     state = run.state
-    train_ds = _training_batches(cfg, train_shards, whitening)
+    train_ds = _training_batches(cfg, train_shards, whitening, inputs)
     val_ds = ShardBatches(
         val_shards,
         cfg["val_batch_size"] or cfg["batch_size"],
@@ -505,6 +509,7 @@ def _train(
         shuffle=False,
         pixel_scale=cfg["pixel_scale"],
         mask_factor=cfg["mask_factor"],
+        inputs=inputs,
     )
     if len(train_ds) == 0:
         raise ValueError(
@@ -523,21 +528,21 @@ def _train(
             return _summary(state, None, finished=False)
         _end_epoch(run, val_ds, out_dir)
     run.checkpoint()
-    model_path = _write_model(run, whitening, out_dir)
+    model_path = _write_model(run, whitening, inputs, out_dir)
     _write_log(state["history"], out_dir / "training_log.csv")
     return _summary(state, model_path, finished=True)
 
 
-def _training_batches(cfg, train_shards, whitening):
-    """The training set: the stream as given (with the run's whitening), or the shards
-    shuffled per epoch."""
+def _training_batches(cfg, train_shards, whitening, inputs):
+    """The training set: the stream as given (with the run's whitening and inputs), or
+    the shards shuffled per epoch."""
     if isinstance(train_shards, StreamBatches):
         if train_shards.batch_size != cfg["batch_size"]:
             raise ValueError(
                 f"the training stream has batches of {train_shards.batch_size} images, "
                 f"training.batch_size is {cfg['batch_size']}"
             )
-        train_shards.whitening = whitening
+        train_shards.whitening, train_shards.inputs = whitening, inputs
         train_shards.pixel_scale, train_shards.mask_factor = cfg["pixel_scale"], cfg["mask_factor"]
         return train_shards
     return ShardBatches(
@@ -551,6 +556,7 @@ def _training_batches(cfg, train_shards, whitening):
         drop_last=True,
         pixel_scale=cfg["pixel_scale"],
         mask_factor=cfg["mask_factor"],
+        inputs=inputs,
     )
 
 

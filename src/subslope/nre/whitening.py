@@ -1,4 +1,5 @@
-"""Whitening statistics: the pixel mean and standard deviation of the training images.
+"""Whitening statistics: the pixel mean and standard deviation of the training images
+(after the input transform of :mod:`subslope.nre.inputs`, which the file records).
 
 Every image (training, validation, test and HST) is whitened with the same two scalars,
 ``(x − mean) / std``, computed over all pixels of all training shards (docs/physics.md).
@@ -25,6 +26,8 @@ import numpy as np
 
 from subslope.io.atomic import read_json, write_json
 from subslope.io.shards import file_sha256, open_shard
+
+from .inputs import InputTransform, shard_light_models
 
 __all__ = ["Moments", "pixel_statistics", "compute_whitening", "load_whitening"]
 
@@ -71,17 +74,28 @@ class Moments:
 
 
 def pixel_statistics(
-    paths: Sequence[str | os.PathLike[str]], *, chunk_images: int = 256
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    chunk_images: int = 256,
+    inputs: InputTransform | None = None,
 ) -> Moments:
-    """Moments of all pixels of the ``images`` of the given shards (read in chunks)."""
+    """Moments of all pixels of the ``images`` of the given shards (read in chunks), after
+    the input transform ``inputs`` (:mod:`subslope.nre.inputs`; ``None``: as stored)."""
     if chunk_images < 1:
         raise ValueError(f"chunk_images = {chunk_images!r} must be >= 1")
+    inputs = inputs or InputTransform()
     total = Moments()
     for path in paths:
         with open_shard(path) as shard:
             data = shard.images
             for start in range(0, data.shape[0], chunk_images):
-                total = total.merge(Moments.of(data[start : start + chunk_images]))
+                stop = min(start + chunk_images, data.shape[0])
+                light = (
+                    shard_light_models(path, shard.file, start, stop)
+                    if inputs.needs_light
+                    else None
+                )
+                total = total.merge(Moments.of(inputs.apply(data[start:stop], light)))
     return total
 
 
@@ -90,15 +104,19 @@ def compute_whitening(
     out_path: str | os.PathLike[str],
     *,
     chunk_images: int = 256,
+    inputs: InputTransform | None = None,
 ) -> dict:
-    """Write the whitening JSON of the shards ``paths`` and return its content.
+    """Write the whitening JSON of the shards ``paths`` (their pixels after the input
+    transform ``inputs``) and return its content.
 
-    Keys: ``format``, ``mean``, ``std``, ``n_pixels``, ``n_images`` and ``shards`` (path,
-    SHA-256 and size in bytes of each input, in the given order).
+    Keys: ``format``, ``mean``, ``std``, ``inputs`` (the transform,
+    :meth:`~subslope.nre.inputs.InputTransform.to_json`), ``n_pixels``, ``n_images`` and
+    ``shards`` (path, SHA-256 and size in bytes of each input, in the given order).
     """
     if not paths:
         raise ValueError("compute_whitening needs at least one shard")
-    m = pixel_statistics(paths, chunk_images=chunk_images)
+    inputs = inputs or InputTransform()
+    m = pixel_statistics(paths, chunk_images=chunk_images, inputs=inputs)
     if not (m.n and np.isfinite(m.mean) and m.std > 0):
         raise ValueError(
             f"degenerate pixel statistics of {list(map(str, paths))}: mean {m.mean}, std {m.std}"
@@ -113,6 +131,7 @@ def compute_whitening(
         "format": WHITENING_FORMAT,
         "mean": m.mean,
         "std": m.std,
+        "inputs": inputs.to_json(),
         "n_pixels": m.n,
         "n_images": n_images,
         "shards": shards,

@@ -1,5 +1,6 @@
-"""The observation of a config: its detector (:class:`subslope.physics.instrument.Instrument`)
-and its PSF kernel (the empirical F814W library or the Gaussian fallback)."""
+"""The observation of a config: its detector (:class:`subslope.physics.instrument.Instrument`),
+its PSF kernel (the empirical F814W library or the Gaussian fallback), and the lens-light
+fit of estimator inputs made with them (:func:`fit_input_light_of`)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from subslope.io.observations import find_lens_centre
 from subslope.physics.instrument import Instrument, gaussian_psf, load_empirical_psf
+from subslope.physics.light.subtract import fit_input_light
 
-__all__ = ["build_instrument", "build_psf"]
+__all__ = ["build_instrument", "build_psf", "fit_input_light_of"]
 
 
 def build_instrument(config: Mapping[str, Any]) -> Instrument:
@@ -50,3 +53,28 @@ def build_psf(
     return load_empirical_psf(
         path, which, supersampling=int(psf["supersampling"]), dtype=torch.float64
     ).numpy()
+
+
+def fit_input_light_of(
+    config: Mapping[str, Any], images, theta_e, psf: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
+    """The lens-light fit of ``images`` ``(B, H, W)`` (e⁻/s) that lens-light-subtracted
+    inputs use, the same for simulated images and HST cutouts: started at the light
+    centre measured with ``hst.lens_centre``, arcs masked about ``theta_e`` ``(B,)``
+    (arcsec), with the config's PSF (or ``psf``) and detector noise
+    (:func:`subslope.physics.light.subtract.fit_input_light`)."""
+    images = np.asarray(images)
+    inst = build_instrument(config)
+    lc = config["hst"]["lens_centre"]
+    centres = np.array(
+        [find_lens_centre(im, pixel_scale=inst.pixel_scale, **lc) for im in images]
+    ).reshape(-1, 2)
+    return fit_input_light(
+        images,
+        centres,
+        theta_e,
+        build_psf(config) if psf is None else psf,
+        background_sigma=inst.background_sigma,
+        exposure_time=inst.total_exposure_time,
+        pixel_scale=inst.pixel_scale,
+    )

@@ -39,7 +39,7 @@ def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]
     _, spec = resolved_scene(config, scene)
     sim = config["simulation"]
     render = {k: v for k, v in sim["render"].items() if k not in RUN_ONLY_RENDER_KEYS}
-    return {
+    sections = {
         "seed": config["seed"],
         "instrument": config["instrument"],
         "cosmology": config["cosmology"],
@@ -51,3 +51,7 @@ def simulation_sections(config: Mapping[str, Any], scene: str) -> dict[str, Any]
         "render": render,
         "sources": sim["sources"],
     }
+    if _config.light_fit_enabled(config):
+        # The stored lens-light fit starts at the measured light centre.
+        sections["light_fit"] = {"lens_centre": config["hst"]["lens_centre"]}
+    return sections

@@ -48,7 +48,7 @@ from subslope.io import shards as _shards
 from subslope.physics.instrument import Instrument, add_noise
 from subslope.simulation import macro as _macro
 from subslope.simulation.los import LosConfig, LosPopulation, los_profiles, sample_los_batch
-from subslope.simulation.observing import build_instrument, build_psf
+from subslope.simulation.observing import build_instrument, build_psf, fit_input_light_of
 from subslope.simulation.precision import (
     LOS_DTYPE,
     SUBHALO_DTYPES,
@@ -424,12 +424,22 @@ def simulate_shard(
         "cosmos_folder": [str(f) for f in cosmos_folders(config)] if out["sources"] else "",
         "source_pad_shape": list(out["pad_shape"]) if out["pad_shape"] else [],
     }
+    tm = out["timings"]
+    light = None
+    if _config.light_fit_enabled(config):
+        t = time.perf_counter()
+        light = fit_input_light_of(config, out["images"], out["params"]["theta_e"], out["psf"])
+        tm["light_fit"] = time.perf_counter() - t
     t = time.perf_counter()
     arrays = {k: out[k] for k in ("images", "params", "psf", "subhalos", "los")}
     path = _shards.write_shard(
-        out_path, **arrays, sources=out["sources"] or None, attrs=attrs, overwrite=overwrite
+        out_path,
+        **arrays,
+        sources=out["sources"] or None,
+        light_fit=light,
+        attrs=attrs,
+        overwrite=overwrite,
     )
-    tm = out["timings"]
     tm["write"] = time.perf_counter() - t
     log.info(
         "timings (s): %s; %.3f s per image; %d subhalos, %d LoS halos; file %.1f kB",

@@ -205,13 +205,18 @@ def check_domain(
     figure_stems: Sequence[str],
     *,
     scene: str,
+    inputs=None,
 ) -> pd.DataFrame:
     """Statistics of the simulated ``images`` and the HST cutouts; writes
     ``domain_check.csv`` (one row per HST system: each statistic's percentile,
     ``inside``, ``outside``), ``statistics.csv`` (every image's statistics, ``kind`` sim
     or hst), ``spread.csv`` (:func:`subslope.validation.domain.spread_table`) and
     ``sources.csv`` (the COSMOS galaxies) to ``out_dir`` and the figures: the histograms,
-    the gallery and, with a third stem and COSMOS sources, the cleaned stamps."""
+    the gallery and, with a third stem and COSMOS sources, the cleaned stamps. The
+    whitened statistics are taken after ``inputs`` (default: the config's input transform,
+    :func:`subslope.stages.train.input_transform`), as the estimator sees the images."""
+    from subslope.stages.train import input_transform
+
     out_dir = Path(out_dir)
     dom = config["domain"]
     psf, inst = build_psf(config), build_instrument(config)
@@ -223,6 +228,7 @@ def check_domain(
         "pixel_scale": inst.pixel_scale,
         "mask_factor": config["training"]["mask_factor"],
         "lens_centre": dict(config["hst"]["lens_centre"]),
+        "inputs": input_transform(config) if inputs is None else inputs,
     }
     log.info("domain check: statistics of %d %s images", len(images), scene)
     sim = image_statistics(images, theta_e, **kw)
@@ -300,10 +306,13 @@ def domain_check_cli(
     sim = simulate_images(config, scene, int(n), ss)
     images = np.asarray(sim["images"], dtype=np.float64)
     theta_e = np.asarray(sim["params"]["theta_e"], dtype=np.float64)
+    from subslope.nre.inputs import InputTransform
+
+    inputs = None  # the config's transform, with the whitening measured after it
     if whitening_json is not None:
         white = read_whitening(whitening_json)
     else:
-        white = (float(images.mean()), float(images.std()))
+        white, inputs = (float(images.mean()), float(images.std())), InputTransform()
     cfg = dict(config)
     cfg["domain"] = dict(config["domain"], scene=scene)
     out = Path(out)
@@ -316,4 +325,5 @@ def domain_check_cli(
         out,
         (str(out / "domain_check"), str(out / "domain_gallery"), str(out / "source_cleaning")),
         scene=scene,
+        inputs=inputs,
     )

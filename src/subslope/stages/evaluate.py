@@ -9,6 +9,7 @@ from pathlib import Path
 from subslope.io.ratio_profiles import write_profiles
 from subslope.io.shards import open_shard
 from subslope.nre.evaluate import estimator_profiles
+from subslope.nre.inputs import InputTransform, ShardLightModels
 
 __all__ = ["PROFILE_PARAMS", "evaluate_shard"]
 
@@ -31,8 +32,10 @@ def evaluate_shard(
     from subslope.nre.train import load_estimator
 
     model, meta = load_estimator(model_path)
+    needs_light = InputTransform.from_json(meta.get("inputs")).needs_light
     with open_shard(shard_path) as shard:
         params = {k: shard.params.get(k) for k in PROFILE_PARAMS}
+        light = ShardLightModels(shard_path, shard.file) if needs_light else None
         scene = shard.attrs.get("scene", "")
         profiles = estimator_profiles(
             model,
@@ -44,6 +47,7 @@ def evaluate_shard(
             gammas,
             batch_size=batch_size,
             device=device,
+            light=light,
         )
     attrs = {
         "scene": str(scene),

@@ -3,6 +3,7 @@ analyze_hst)."""
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -21,6 +22,8 @@ from subslope.stages.cdm_grid import cdm_band
 from subslope.stats import calibration, intervals
 
 __all__ = ["analyze_hst"]
+
+log = logging.getLogger(__name__)
 
 
 def analyze_hst(
@@ -45,17 +48,17 @@ def analyze_hst(
     nfw_scene: str = "nfw",
     tnfw_scene: str | None = "tnfw",
     domain_csv=None,
+    config: Mapping[str, Any] | None = None,
 ):
     """Profiles, intervals and figures 5–6 of the real HST lenses.
 
-    Every cutout goes through the same pre-processing as the simulations (training
-    whitening, 1.5 θ_E mask) with θ_E from the catalogue and the lens centre measured by
-    :func:`find_lens_centre`. Individual intervals use τ_1; the combined stack of the
-    ``combine`` systems (default all) uses τ_N, N = their number. Writes ``out_h5``
-    (names, log_ratio, gammas, theta_e, lens_x, lens_y, combined), ``out_csv`` (one row per
-    system and one ``combined`` row: mle, lower, upper, threshold, threshold_n, flags) and
-    the figures; figure 6's a = 1 bands come from ``cdm_csv``, the columns
-    ``inside_domain``, ``outside_domain`` from the domain check's ``domain_csv``.
+    Cutouts get the estimator's input transform (lens light fitted as in the shards,
+    ``config``'s PSF and detector), whitening and 1.5 θ_E mask (θ_E catalogued, centre of
+    :func:`find_lens_centre`). Intervals use τ_1, the stack of ``combine`` (default all)
+    τ_N. Writes ``out_h5`` (names, log_ratio, gammas, theta_e, lens_x, lens_y, combined),
+    ``out_csv`` (a row per system and a ``combined`` row: mle, lower, upper, threshold,
+    threshold_n, flags) and the figures (figure 6's a = 1 bands from ``cdm_csv``; columns
+    ``inside_domain``, ``outside_domain`` from ``domain_csv``).
     """
     import pandas as pd
 
@@ -65,7 +68,7 @@ def analyze_hst(
     if unknown:
         raise ValueError(f"hst: unknown system(s) {unknown}; catalogued: {names}")
     prof, meta = _profiles(
-        model_path, images, theta_e, lx, ly, gammas, batch_size, device, pixel_scale
+        model_path, (images, theta_e, lx, ly), gammas, batch_size, device, pixel_scale, config
     )
     g = np.asarray(gammas, dtype=np.float64)
     thr = load_thresholds(thresholds_json)
@@ -156,11 +159,16 @@ def _row(
     }
 
 
-def _profiles(model_path, images, theta_e, lx, ly, gammas, batch_size, device, pixel_scale):
+def _profiles(model_path, lenses, gammas, batch_size, device, pixel_scale, config):
     """ln r̂ of the cutouts with the estimator's own pre-processing, and its metadata."""
+    from subslope.nre.inputs import InputTransform
     from subslope.nre.train import load_estimator
 
+    images, theta_e, lx, ly = lenses
     model, meta = load_estimator(model_path)
+    light = None
+    if InputTransform.from_json(meta.get("inputs")).needs_light:
+        light = _light_models(config, images, theta_e, pixel_scale)
     prof = estimator_profiles(
         model,
         meta,
@@ -172,8 +180,25 @@ def _profiles(model_path, images, theta_e, lx, ly, gammas, batch_size, device, p
         batch_size=batch_size,
         device=device,
         pixel_scale=pixel_scale,
+        light=light,
     )
     return prof, meta
+
+
+def _light_models(config, images, theta_e, pixel_scale: float) -> np.ndarray:
+    """The lens light of the cutouts, fitted with the code and settings of the shards."""
+    if config is None:
+        raise ValueError(
+            "the estimator subtracts the fitted lens light: analyze_hst needs the workflow "
+            "config (PSF and detector of the fit)"
+        )
+    from subslope.physics.light.subtract import model_images
+    from subslope.simulation.observing import build_psf, fit_input_light_of
+
+    psf = build_psf(config)
+    fit = fit_input_light_of(config, images, theta_e, psf)
+    log.info("lens light of the cutouts: chi2/dof %s", np.round(fit["chi2_dof"], 2).tolist())
+    return model_images(fit, psf, images.shape[-1], pixel_scale)
 
 
 def _write_h5(path, names, prof, g, geometry, combined, combine, run_name: str, model_path) -> None:

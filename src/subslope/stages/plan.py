@@ -98,7 +98,8 @@ def shard_job_config(
     and the render settings without :data:`RUN_ONLY_RENDER_KEYS`; for a CDM scene the
     multipliers up to and including ``multiplier`` (its position in the list sets the
     shard's seed, so appending a multiplier changes no existing job; null for the other
-    scenes). Every stage is off,
+    scenes); whether the lens light is fitted (``simulation.light_fit`` resolved) and the
+    lens-centre settings the fit starts from. Every stage is off,
     so the job's own validation checks only what the job uses. Passed to the job as a
     Snakemake param, so a change of any of these values reruns exactly the shards it
     affects.
@@ -122,7 +123,9 @@ def shard_job_config(
             "multipliers": kept,
             "render": {k: v for k, v in sim["render"].items() if k not in RUN_ONLY_RENDER_KEYS},
             "sources": sim["sources"],
+            "light_fit": _config.light_fit_enabled(config),
         },
+        "hst": {"lens_centre": config["hst"]["lens_centre"]},
         "stages": {name: False for name in _config.STAGE_NEEDS},
     }
 

@@ -25,6 +25,7 @@ __all__ = [
     "runnable_config",
     "shard_cache_key",
     "compute_whitening",
+    "attach_light_fit",
     "plot_scene_examples_from_shard",
 ]
 
@@ -57,11 +58,28 @@ def simulate_shard(config: Mapping[str, Any], scene: str, shard: int, out_path, 
     return simulate(config, scene, shard, out_path, **kwargs)
 
 
-def compute_whitening(*args, **kwargs):
-    """:func:`subslope.nre.whitening.compute_whitening`."""
+def compute_whitening(config: Mapping[str, Any], paths, out_path) -> dict:
+    """:func:`subslope.nre.whitening.compute_whitening` of the training shards ``paths``
+    after the config's input transform (:func:`subslope.stages.train.input_transform`)."""
     from subslope.nre.whitening import compute_whitening as whitening
+    from subslope.stages.train import input_transform
 
-    return whitening(*args, **kwargs)
+    return whitening(paths, out_path, inputs=input_transform(config))
+
+
+def attach_light_fit(config: Mapping[str, Any], src, dst) -> Path:
+    """Copy the shard ``src`` to ``dst`` with the lens-light fit of every image added, as
+    a shard job with ``simulation.light_fit`` on makes it (the config's detector and lens
+    centre, the shard's PSF): for shards simulated without it."""
+    import numpy as np
+
+    from subslope.io.shards import open_shard, with_light_fit
+    from subslope.simulation.observing import fit_input_light_of
+
+    with open_shard(src) as shard:
+        images = np.asarray(shard.images[:], dtype=np.float32)
+        theta_e, psf = np.asarray(shard.params["theta_e"]), np.asarray(shard.psf)
+    return with_light_fit(src, dst, fit_input_light_of(config, images, theta_e, psf))
 
 
 def plot_scene_examples_from_shard(*args, **kwargs):

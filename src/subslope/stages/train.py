@@ -11,12 +11,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from subslope.config import STREAMED_SCENE
+from subslope.config import STREAMED_SCENE, light_fit_enabled
 from subslope.nre.training_config import WORKFLOW_KEYS, config_hash, resolve_config
 from subslope.stages.plan import derived_seed
 
 __all__ = [
     "training_section",
+    "input_transform",
     "checkpoint_key",
     "data_fingerprint",
     "SceneStream",
@@ -41,6 +42,19 @@ def training_section(config: Mapping[str, Any]) -> dict[str, Any]:
     tr["pixel_scale"] = float(config["instrument"]["pixel_scale"])
     tr["progress"] = False
     return tr
+
+
+def input_transform(config: Mapping[str, Any]):
+    """The estimator's input transform of a workflow config (``training.inputs`` with the
+    detector's empty-pixel σ_bg and total exposure time,
+    :class:`subslope.nre.inputs.InputTransform`)."""
+    from subslope.nre.inputs import InputTransform
+    from subslope.simulation.observing import build_instrument
+
+    inst = build_instrument(config)
+    return InputTransform(
+        config["training"]["inputs"], inst.background_sigma, inst.total_exposure_time
+    )
 
 
 def checkpoint_key(
@@ -115,7 +129,15 @@ class SceneStream:
         from subslope.simulation.shard import simulate_images
 
         out = simulate_images(self.config, self.scene, n, seed_sequence)
-        return out["images"], out["params"]
+        params = out["params"]
+        if light_fit_enabled(self.config):
+            from subslope.physics.light.subtract import model_images
+            from subslope.simulation.observing import fit_input_light_of
+
+            fit = fit_input_light_of(self.config, out["images"], params["theta_e"], out["psf"])
+            npix, scale = out["images"].shape[-1], self.config["instrument"]["pixel_scale"]
+            params = {**params, "light_model": model_images(fit, out["psf"], npix, scale)}
+        return out["images"], params
 
     def labels(self, n: int, seed_sequence):
         """``n`` labels γ from the scene's macro prior (no images)."""

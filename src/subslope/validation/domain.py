@@ -31,9 +31,11 @@ import numpy as np
 import pandas as pd
 
 from subslope.io.observations import find_lens_centre
+from subslope.nre.inputs import InputTransform
 from subslope.nre.preprocess import preprocess
 from subslope.physics.grid import pixel_grid
 from subslope.physics.light.fit import fit_lens_light
+from subslope.physics.light.subtract import fit_input_light, model_images
 
 __all__ = [
     "STATISTICS",
@@ -119,10 +121,14 @@ def image_statistics(
     mask_factor: float = 1.5,
     lens_centre: Mapping[str, Any] | None = None,
     chunk: int = 100,
+    inputs: InputTransform | None = None,
 ) -> pd.DataFrame:
     """The statistics of :data:`STATISTICS` for ``images`` ``(B, H, W)`` (e⁻/s per pixel)
     with Einstein radii ``theta_e`` ``(B,)`` (arcsec); one row per image, plus the
-    measured lens centre ``lens_x``, ``lens_y`` (arcsec)."""
+    measured lens centre ``lens_x``, ``lens_y`` (arcsec). ``white_*`` are taken of what
+    the estimator sees: the images after the input transform ``inputs``
+    (:mod:`subslope.nre.inputs`; a lens-light-subtracting one fits each image as the
+    shard jobs do) and the whitening."""
     images = np.asarray(images, dtype=np.float64)
     theta_e = np.asarray(theta_e, dtype=np.float64).reshape(-1)
     if images.ndim != 3 or images.shape[0] != theta_e.size:
@@ -142,12 +148,15 @@ def image_statistics(
                 pixel_scale,
                 mask_factor,
                 dict(lens_centre or {}),
+                inputs or InputTransform(),
             )
         )
     return pd.concat(rows, ignore_index=True)
 
 
-def _chunk_statistics(images, theta_e, psf, sigma_bg, t_exp, whitening, pix, mask_factor, lc):
+def _chunk_statistics(
+    images, theta_e, psf, sigma_bg, t_exp, whitening, pix, mask_factor, lc, inputs
+):
     n, h, _ = images.shape
     centres = np.array([find_lens_centre(im, pixel_scale=pix, **lc) for im in images])
     fit = fit_lens_light(
@@ -164,8 +173,13 @@ def _chunk_statistics(images, theta_e, psf, sigma_bg, t_exp, whitening, pix, mas
     te = theta_e[:, None, None]
     annulus = (r > ANNULUS[0] * te) & (r < ANNULUS[1] * te)
     inside = r <= mask_factor * te
+    light = None
+    if inputs.needs_light:
+        kw = {"background_sigma": sigma_bg, "exposure_time": t_exp, "pixel_scale": pix}
+        fitted = fit_input_light(images, centres, theta_e, psf, **kw)
+        light = model_images(fitted, psf, h, pix)
     white = preprocess(
-        images,
+        inputs.apply(images, light),
         theta_e,
         centres[:, 0],
         centres[:, 1],
