@@ -135,6 +135,14 @@ def test_shard_batches_subtract_the_stored_fit(tmp_path, lenses):
     model = model_images(fit, PSF, NPIX, SCALE)
     ref = preprocess(images - model, np.full(5, 0.8), 0.0, 0.0, 0.0, 1.0, pixel_scale=SCALE)
     np.testing.assert_allclose(ds[0]["x"][:, 0].numpy(), ref, atol=1e-6)
+    # shuffled blocks cut by the batch boundaries: each image gets its own model
+    ds = ShardBatches([path], 2, (0.0, 1.0), shuffle=True, block_size=3, inputs=SUBTRACTED)
+    seen = []
+    for b in range(len(ds)):
+        batch = ds[b]
+        seen += batch["index"].tolist()
+        np.testing.assert_allclose(batch["x"][:, 0].numpy(), ref[batch["index"].numpy()], atol=1e-6)
+    assert sorted(seen) == list(range(5))
     import h5py
 
     with h5py.File(path) as fh:

@@ -254,7 +254,7 @@ class ShardBatches(Dataset):
             images[sel] = chunk[rows[sel] - lo]
             if self.inputs.needs_light:
                 light = np.empty_like(images) if light is None else light
-                light[sel] = shard_light_models(self.paths[s], fh, lo, hi)[rows[sel] - lo]
+                light[sel] = shard_light_models(self.paths[s], fh, lo, hi, rows[sel] - lo)
             for k in PARAM_KEYS:
                 if f"params/{k}" in fh:
                     rows_k = CheckedRows(self.paths[s], fh[f"params/{k}"])[lo:hi]

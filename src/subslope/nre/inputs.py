@@ -115,9 +115,12 @@ def read_light_fit(path, fh: h5py.File, lo: int, hi: int) -> dict[str, np.ndarra
     return {k: np.asarray(CheckedRows(path, fh[f"{LIGHT_FIT_GROUP}/{k}"])[lo:hi]) for k in STORED}
 
 
-def shard_light_models(path, fh: h5py.File, lo: int, hi: int) -> np.ndarray:
-    """The fitted lens-light model images of rows ``lo:hi`` of the open shard ``fh``."""
+def shard_light_models(path, fh: h5py.File, lo: int, hi: int, take=None) -> np.ndarray:
+    """The fitted lens-light model images of rows ``lo:hi`` of the open shard ``fh``, or
+    of the rows ``lo + take`` only (``take``: indices into ``lo:hi``)."""
     params = read_light_fit(path, fh, lo, hi)
+    if take is not None:
+        params = {k: v[np.asarray(take)] for k, v in params.items()}
     npix = fh["images"].shape[-1]
     return model_images(params, np.asarray(fh["psf"]), npix, _pixel_scale(fh))
 

@@ -14,9 +14,9 @@ import torch
 
 from subslope.io.observations import find_lens_centre
 from subslope.physics.instrument import Instrument, gaussian_psf, load_empirical_psf
-from subslope.physics.light.subtract import fit_input_light
+from subslope.physics.light.subtract import fit_input_light, model_images
 
-__all__ = ["build_instrument", "build_psf", "fit_input_light_of"]
+__all__ = ["build_instrument", "build_psf", "fit_input_light_of", "fitted_light_models"]
 
 
 def build_instrument(config: Mapping[str, Any]) -> Instrument:
@@ -78,3 +78,15 @@ def fit_input_light_of(
         exposure_time=inst.total_exposure_time,
         pixel_scale=inst.pixel_scale,
     )
+
+
+def fitted_light_models(
+    config: Mapping[str, Any], images, theta_e, psf: np.ndarray | None = None
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """:func:`fit_input_light_of` and the fitted lens light as images ``(B, H, W)``
+    float32 (e⁻/s per pixel): what a lens-light-subtracting estimator takes from images
+    that have no stored fit (the stream, the HST cutouts)."""
+    psf = build_psf(config) if psf is None else psf
+    fit = fit_input_light_of(config, images, theta_e, psf)
+    npix, scale = np.shape(images)[-1], build_instrument(config).pixel_scale
+    return fit, model_images(fit, psf, npix, scale)

@@ -168,7 +168,7 @@ def _profiles(model_path, lenses, gammas, batch_size, device, pixel_scale, confi
     model, meta = load_estimator(model_path)
     light = None
     if InputTransform.from_json(meta.get("inputs")).needs_light:
-        light = _light_models(config, images, theta_e, pixel_scale)
+        light = _light_models(config, images, theta_e)
     prof = estimator_profiles(
         model,
         meta,
@@ -185,20 +185,18 @@ def _profiles(model_path, lenses, gammas, batch_size, device, pixel_scale, confi
     return prof, meta
 
 
-def _light_models(config, images, theta_e, pixel_scale: float) -> np.ndarray:
+def _light_models(config, images, theta_e) -> np.ndarray:
     """The lens light of the cutouts, fitted with the code and settings of the shards."""
     if config is None:
         raise ValueError(
             "the estimator subtracts the fitted lens light: analyze_hst needs the workflow "
             "config (PSF and detector of the fit)"
         )
-    from subslope.physics.light.subtract import model_images
-    from subslope.simulation.observing import build_psf, fit_input_light_of
+    from subslope.simulation.observing import fitted_light_models
 
-    psf = build_psf(config)
-    fit = fit_input_light_of(config, images, theta_e, psf)
+    fit, light = fitted_light_models(config, images, theta_e)
     log.info("lens light of the cutouts: chi2/dof %s", np.round(fit["chi2_dof"], 2).tolist())
-    return model_images(fit, psf, images.shape[-1], pixel_scale)
+    return light
 
 
 def _write_h5(path, names, prof, g, geometry, combined, combine, run_name: str, model_path) -> None:

@@ -131,12 +131,12 @@ class SceneStream:
         out = simulate_images(self.config, self.scene, n, seed_sequence)
         params = out["params"]
         if light_fit_enabled(self.config):
-            from subslope.physics.light.subtract import model_images
-            from subslope.simulation.observing import fit_input_light_of
+            from subslope.simulation.observing import fitted_light_models
 
-            fit = fit_input_light_of(self.config, out["images"], params["theta_e"], out["psf"])
-            npix, scale = out["images"].shape[-1], self.config["instrument"]["pixel_scale"]
-            params = {**params, "light_model": model_images(fit, out["psf"], npix, scale)}
+            _, light = fitted_light_models(
+                self.config, out["images"], params["theta_e"], out["psf"]
+            )
+            params = {**params, "light_model": light}
         return out["images"], params
 
     def labels(self, n: int, seed_sequence):
