@@ -35,8 +35,16 @@ stop_daemons() {
     for name in "${STARTED[@]}"; do
         pkill -x "$name" 2>/dev/null || true
     done
+    # a daemon writes its state while it shuts down: wait for it before removing that
+    for name in "${STARTED[@]}"; do
+        for _ in $(seq 50); do
+            pgrep -x "$name" >/dev/null || break
+            sleep 0.2
+        done
+        pkill -9 -x "$name" 2>/dev/null || true
+    done
     if [ "${SLURM_CI_KEEP:-0}" != 1 ]; then
-        rm -rf "$WORK"
+        rm -rf "$WORK" || { sleep 1; rm -rf "$WORK"; }
     fi
     say "stopped ${STARTED[*]:-nothing}; took $(( $(date +%s) - t0 )) s in all"
 }
