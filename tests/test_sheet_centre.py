@@ -40,12 +40,12 @@ def _population(n: int, gamma: float, centre=(0.6, -0.4), seed: int = 3) -> Subh
     )
 
 
-def _pass(subs, settings, sheet_centre, x=None, y=None):
+def _pass(subs, settings, sheet_centre, x=None, y=None, members=True):
     xg, yg = pixel_grid(NPIX, PIX, dtype=torch.float64)
     xg, yg = xg.reshape(1, -1), yg.reshape(1, -1)
     flat = {k: getattr(subs, k) for k in ("amp", "gamma", "e1", "e2", "x", "y")}
     pop = pack_population(
-        "epl", flat, subs.counts, settings.n_terms, torch.float64, "cpu", sheet_centre
+        "epl", flat, subs.counts, settings.n_terms, torch.float64, "cpu", sheet_centre, members
     )
     geo = Geometry((GridBlock(0, NPIX, PIX),), 0, (xg, yg), displaced=False)
     px = xg if x is None else torch.cat([x, xg], 1)

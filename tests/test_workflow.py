@@ -221,7 +221,7 @@ STAGE_RULES = {
     "evaluate": {"evaluate_profiles", "evaluate_cdm_profiles"},
     "calibrate": {"calibrate_threshold", "summarize_coverage"},
     "cdm_grid": {"measure_cdm_grid"},
-    "null_tests": {"null_tests"},
+    "null_tests": {"null_tests", "halo_free_profiles", "halo_free_null"},
     "hst": {"analyze_hst"},
     "figures": {"plot_training_curves", "plot_validation"},
     "summary": {"write_summary"},
@@ -247,6 +247,8 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
         "summarize_coverage": 1,
         "measure_cdm_grid": 1,
         "null_tests": 1,
+        "halo_free_profiles": 1,
+        "halo_free_null": 1,
         "analyze_hst": 1,
         "plot_validation": 1,
         "write_summary": 1,
@@ -299,6 +301,8 @@ SUMMARY_TABLES = (
     "cdm_prediction",
     "coverage",
     "null_tests",
+    "halo_free",
+    "nsub_bias",
     "trend",
     "stage_runtime",
 )
@@ -406,10 +410,17 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
     assert runtime.loc["simulate", "jobs"] == 9 and runtime.loc["train", "seconds"] > 0
     assert runtime.loc["evaluate", "jobs"] == 6  # validation, test_epl, 2 CDM, 2 null scenes
-    assert runtime.loc["null_tests", "jobs"] == 1
+    assert runtime.loc["null_tests", "jobs"] == 3  # null_tests, halo_free_profiles, _null
     null = pd.read_csv(results / "null_tests" / "null_tests.csv")
     assert null["scene"].tolist() == ["null_nosub", "null_nosub_los"]
     assert (null["n_stacks"] == 2).all() and (null["n_per_stack"] == 2).all()
+    free = pd.read_csv(results / "null_tests" / "halo_free.csv")
+    assert free["variant"].tolist() == ["original", "sheets_kept", "sheets_removed"]
+    assert (free["n_images"] == 8).all() and (free["n_stacks"] == 4).all()
+    assert free["passes"].iloc[1:].isin([True, False]).all()
+    bias = pd.read_csv(results / "null_tests" / "nsub_bias.csv")
+    assert bias["n_images"].sum() == 8
+    assert "Rule `halo_free_null` not run" not in summary
     assert (campaign / "logs" / "train_estimator.log").read_text().count("training done") == 1
 
 

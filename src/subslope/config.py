@@ -40,6 +40,7 @@ __all__ = [
     "validate",
     "cross_key_problems",
     "light_fit_enabled",
+    "halo_free_shards",
     "active_stages",
     "STAGE_NEEDS",
     "BASE_KEY",
@@ -343,6 +344,8 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
     if stages["null_tests"]:
         for k, name in enumerate(config["null_tests"]["scenes"]):
             need_scene(f"null_tests.scenes[{k}]", name)
+        if stages["calibrate"] and cal["stack_scene"] in with_shards:
+            problems += _halo_free_problems(config)
     if stages["domain"]:
         need_scene("domain.scene", config["domain"]["scene"])
         lo, hi = config["domain"]["bounds"]
@@ -360,6 +363,44 @@ def _inputs_problems(config: Mapping[str, Any]) -> list[str]:
         return [
             "config key simulation.light_fit = false: training.inputs = 'light_subtracted' "
             "needs the lens-light fit of every image (auto or true)"
+        ]
+    return []
+
+
+def halo_free_shards(config: Mapping[str, Any]) -> int:
+    """How many shards of ``calibration.stack_scene`` (from the first) the halo-free null
+    test re-renders: enough for ``null_tests.halo_free_sets`` sets, 0 when it is off."""
+    n_sets = int(config["null_tests"]["halo_free_sets"])
+    if n_sets == 0:
+        return 0
+    scene = config["calibration"]["stack_scene"]
+    per_set = int(_scene_value(config, scene, "images_per_set"))
+    per_shard = int(config["simulation"]["scenes"][scene]["images_per_shard"])
+    return -(-n_sets // max(1, per_shard // per_set))
+
+
+def _halo_free_problems(config: Mapping[str, Any]) -> list[str]:
+    """``null_tests.halo_free_sets`` against the shards of ``calibration.stack_scene``."""
+    scene = config["calibration"]["stack_scene"]
+    sim = config["simulation"]["scenes"][scene]
+    per_set = int(_scene_value(config, scene, "images_per_set"))
+    need, have = halo_free_shards(config), int(sim["n_shards"])
+    if sim["images_per_shard"] % per_set:
+        return (
+            [
+                f"config key null_tests.halo_free_sets: the shards of calibration.stack_scene "
+                f"{scene!r} must hold whole sets (images_per_shard = {sim['images_per_shard']} "
+                f"is not a multiple of images_per_set = {per_set})"
+            ]
+            if need
+            else []
+        )
+    if need > have:
+        sets = have * (sim["images_per_shard"] // per_set)
+        return [
+            f"config key null_tests.halo_free_sets = {config['null_tests']['halo_free_sets']}: "
+            f"the {have} shards of calibration.stack_scene {scene!r} hold {sets} sets "
+            f"(allowed: 0 to {sets})"
         ]
     return []
 

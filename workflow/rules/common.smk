@@ -264,6 +264,12 @@ def benchmark_files():
         out["cdm_grid"] = ["results/benchmarks/measure_cdm_grid.tsv"]
     if null_tests_on():
         out["null_tests"] = ["results/benchmarks/null_tests.tsv"]
+    if halo_free_on():
+        out.setdefault("null_tests", []).extend(
+            f"results/benchmarks/halo_free_profiles/{job['scene']}/shard_{job['shard']}.tsv"
+            for job in HALO_FREE_JOBS
+        )
+        out["null_tests"].append("results/benchmarks/halo_free_null.tsv")
     if STAGE_ON["hst"]:
         out["hst"] = ["results/benchmarks/analyze_hst.tsv"]
     if STAGE_ON["figures"]:
@@ -294,6 +300,8 @@ def all_targets():
         targets += rules.measure_cdm_grid.output
     if null_tests_on():
         targets += rules.null_tests.output
+    if halo_free_on():
+        targets += rules.halo_free_null.output
     if STAGE_ON["hst"]:
         targets += rules.analyze_hst.output
     if STAGE_ON["figures"]:
@@ -313,6 +321,8 @@ SUMMARY_CSVS = [
     "cdm_prediction",
     "coverage",
     "null_tests",
+    "halo_free",
+    "nsub_bias",
     "trend",
     "stage_runtime",
 ]
@@ -328,10 +338,18 @@ def null_tests_on():
     return STAGE_ON["null_tests"] and bool(config["null_tests"]["scenes"])
 
 
+def halo_free_on():
+    """The halo-free null test runs (null_tests.halo_free_sets > 0)."""
+    return STAGE_ON["null_tests"] and HALO_FREE_N > 0
+
+
 def summary_inputs(wildcards):
     inputs = {}
     if null_tests_on():
         inputs["null_tests"] = rules.null_tests.output.csv
+    if halo_free_on():
+        inputs["halo_free"] = rules.halo_free_null.output.csv
+        inputs["nsub_bias"] = rules.halo_free_null.output.bias
     if STAGE_ON["train"]:
         inputs["training_log"] = rules.train_estimator.output.log_csv
     if STAGE_ON["hst"]:

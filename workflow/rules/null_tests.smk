@@ -39,3 +39,79 @@ rule null_tests:
         run_name=RUN,
     script:
         "../scripts/null_tests.py"
+
+
+# The null test a gamma-blind estimator must pass (subslope.stages.halo_free): the first
+# null_tests.halo_free_sets sets of the stack scene re-rendered without their subhalos
+# and line-of-sight halos, their negative sheets kept and removed; gamma_MLE must not
+# follow the label. Also the bias of gamma_MLE by N_sub. Off when halo_free_sets is 0.
+HALO_FREE_N = subslope.config.halo_free_shards(config) if STAGE_ON["null_tests"] else 0
+HALO_FREE_JOBS = [
+    job
+    for job in SHARD_JOBS
+    if job["scene"] == CAL["stack_scene"] and job["shard"] < HALO_FREE_N
+]
+HALO_FREE_VARIANTS = ("sheets_kept", "sheets_removed")
+
+
+def halo_free_files(variant):
+    return [
+        f"results/null_tests/halo_free/{variant}/{job['scene']}/shard_{job['shard']}.h5"
+        for job in HALO_FREE_JOBS
+    ]
+
+
+rule halo_free_profiles:
+    input:
+        shard="results/simulate_shard/{scene}/shard_{shard}.h5",
+        model=rules.train_estimator.output.model,
+    output:
+        sheets_kept=update(
+            "results/null_tests/halo_free/sheets_kept/{scene}/shard_{shard}.h5"
+        ),
+        sheets_removed=update(
+            "results/null_tests/halo_free/sheets_removed/{scene}/shard_{shard}.h5"
+        ),
+    log:
+        "logs/halo_free_profiles/{scene}/shard_{shard}.log",
+    benchmark:
+        "results/benchmarks/halo_free_profiles/{scene}/shard_{shard}.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: config["inference"]["threads"]
+    resources:
+        mem_mb=3000,
+        runtime=60,
+        gpu=config["inference"]["gpus"],
+        serial=1,
+    params:
+        gamma_grid=GRID,
+        batch_size=config["inference"]["batch_size"],
+        device=config["inference"]["device"],
+        run_name=RUN,
+    script:
+        "../scripts/halo_free_profiles.py"
+
+
+rule halo_free_null:
+    input:
+        original=[profile_path(job) for job in HALO_FREE_JOBS],
+        sheets_kept=halo_free_files("sheets_kept"),
+        sheets_removed=halo_free_files("sheets_removed"),
+        shards=[job["path"] for job in HALO_FREE_JOBS],
+    output:
+        csv=update("results/null_tests/halo_free.csv"),
+        bias=update("results/null_tests/nsub_bias.csv"),
+    log:
+        "logs/halo_free_null.log",
+    benchmark:
+        "results/benchmarks/halo_free_null.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    params:
+        n_sets=config["null_tests"]["halo_free_sets"],
+    script:
+        "../scripts/halo_free_null.py"

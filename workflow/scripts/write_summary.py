@@ -23,6 +23,8 @@ try:
         calibration_csv=inputs.get("calibration"),
         domain_csv=inputs.get("domain"),
         null_csv=inputs.get("null_tests"),
+        halo_free_csv=inputs.get("halo_free"),
+        bias_csv=inputs.get("nsub_bias"),
         trend=trend,
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,

@@ -122,6 +122,8 @@ class _Batch:
     geometry: Geometry
     grid: tuple[Tensor, Tensor, int]
     sheet: tuple[str, str] = ("origin", "origin")
+    #: whether the halos' own deflections are rendered (False: their sheets only)
+    members: bool = True
     #: macro parameters of every image of the render call, converted once
     #: (:meth:`par`), shared by its sub-batches
     columns: dict = dataclasses.field(default_factory=dict)
@@ -173,6 +175,7 @@ def _subhalo_population(batch: _Batch, subhalos) -> Population | None:
         s.dtype,
         batch.device,
         batch.sheet[0],
+        batch.members,
     )
 
 
@@ -268,6 +271,7 @@ def _los_planes(batch: _Batch, los, lens_plane, zl: np.ndarray, zs: np.ndarray) 
             table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2),
             c_slice,
             batch.sheet[1],
+            batch.members,
         )
         has = c_slice > 0
 
@@ -494,6 +498,7 @@ def _render(
     los,
     smooth: bool,
     sheet=("origin", "origin"),
+    members: bool = True,
 ) -> Tensor:
     if not isinstance(settings, RenderSettings):
         raise ValueError(f"settings must be a RenderSettings, got {type(settings).__name__}")
@@ -510,7 +515,9 @@ def _render(
     with torch.no_grad():
         out = [
             _render_group(
-                _Batch(g, macro, settings, device, kernels, geometry, grid, sheet, columns),
+                _Batch(
+                    g, macro, settings, device, kernels, geometry, grid, sheet, members, columns
+                ),
                 (psf_t, spectrum),
                 sources,
                 subhalos,
@@ -544,6 +551,7 @@ def render(
     subhalos=None,
     los=None,
     sheet_centre="origin",
+    members: bool = True,
 ) -> Tensor:
     """Noise-free full image, ``(B, npix, npix)`` e⁻/s per pixel.
 
@@ -554,7 +562,10 @@ def render(
     :class:`subslope.simulation.los.LosPopulation` (reduced deflections for each system's z_source);
     ``sheet_centre``: where the negative sheets are centred, ``origin`` or
     ``mass_centroid`` (:data:`subslope.render.populations.SHEET_CENTRES`), one name for
-    every plane or ``{"subhalos": ..., "los": ...}``.
+    every plane or ``{"subhalos": ..., "los": ...}``; ``members=False``: the negative
+    sheets of ``subhalos`` and ``los`` without the halos themselves (null tests).
     """
     sheet = sheet_centre_pair(sheet_centre)
-    return _render(macro, psf, settings, sources, subhalos, los, smooth=False, sheet=sheet)
+    return _render(
+        macro, psf, settings, sources, subhalos, los, smooth=False, sheet=sheet, members=members
+    )

@@ -62,12 +62,15 @@ PAD_VALUES = {key: value for p in PAIR_PROFILES.values() for key, value in p.pad
 class Population:
     """A padded population of a sub-batch: its member table ``(b, M, N)``
     (:func:`subslope.physics.pairs.sums.member_table`; padded members have zero amplitude)
-    and where its negative sheet is centred (:data:`SHEET_CENTRES`)."""
+    and where its negative sheet is centred (:data:`SHEET_CENTRES`). ``members=False``
+    keeps the sheet but drops the members' own deflections (the null test of a scene
+    with its halos removed and their sheets kept)."""
 
     profile: str
     table: Tensor
     counts: np.ndarray
     sheet_centre: str = "origin"
+    members: bool = True
 
     def __post_init__(self) -> None:
         if self.sheet_centre not in SHEET_CENTRES:
@@ -99,13 +102,15 @@ def pack_population(
     dtype,
     device,
     sheet_centre: str = "origin",
+    members: bool = True,
 ) -> Population:
     n_pad = max(1, int(counts.max()) if counts.size else 0)
     params = {}
     for key, vals in profile_values(profile, flat):
         arr, _ = pack_ragged(vals, counts=counts, n_max=n_pad, fill=PAD_VALUES[key])
         params[key] = torch.as_tensor(arr, dtype=dtype, device=device)
-    return Population(profile, member_table(profile, params, n_terms), counts, sheet_centre)
+    table = member_table(profile, params, n_terms)
+    return Population(profile, table, counts, sheet_centre, members)
 
 
 def flat_table(profile: str, flat: dict[str, np.ndarray], n_terms: int, dtype, device) -> Tensor:
@@ -177,12 +182,10 @@ def population_pass(
         if centroid:
             k0, kx, ky = k_sum
             cx, cy = moments_centroid(k0, kx, ky)
-            k_sheet = -(k0 / n_pix)
-            return ax + k_sheet * (x - cx), ay + k_sheet * (y - cy), k_sheet
-        k_sheet = -(k_sum / n_pix)[:, None]
-        return ax + k_sheet * x, ay + k_sheet * y, k_sheet
+            return _with_sheet(pop, ax, ay, -(k0 / n_pix), x - cx, y - cy)
+        return _with_sheet(pop, ax, ay, -(k_sum / n_pix)[:, None], x, y)
     n = pop.table.shape[-1]
-    if n < FEW_MEMBERS and kernels.compiled:
+    if n < FEW_MEMBERS and kernels.compiled and pop.members:
         return kernels.few_sheet(x, y, pop.table, pop.profile, n_pix, centroid)
     w = chunk_width(settings, n_all, kernels.compiled)
     ax = ay = kap = None
@@ -199,8 +202,16 @@ def population_pass(
         cx, cy = sheet_centroid(
             kap[:, n_all - n_pix :], x[:, n_all - n_pix :], y[:, n_all - n_pix :]
         )
-        return ax + k_sheet * (x - cx), ay + k_sheet * (y - cy), k_sheet
-    return ax + k_sheet * x, ay + k_sheet * y, k_sheet
+        return _with_sheet(pop, ax, ay, k_sheet, x - cx, y - cy)
+    return _with_sheet(pop, ax, ay, k_sheet, x, y)
+
+
+def _with_sheet(pop: Population, ax, ay, k_sheet, dx, dy) -> tuple[Tensor, Tensor, Tensor]:
+    """The members' deflection (unless ``pop.members`` is off) plus the sheet's,
+    ``k_sheet · (dx, dy)`` about its centre."""
+    if not pop.members:
+        return k_sheet * dx, k_sheet * dy, k_sheet
+    return ax + k_sheet * dx, ay + k_sheet * dy, k_sheet
 
 
 def main_lens_deflection(

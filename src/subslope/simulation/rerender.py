@@ -1,7 +1,8 @@
 """Images from a stored shard: the renderer's inputs rebuilt from the stored values only
 (populations at their stored precision, their lens parameters derived as in the
 simulation by :func:`subslope.simulation.subhalos.subhalo_population`), the bit-exact
-rerender of an image and the smooth models that placed its subhalos."""
+rerender of an image, the smooth models that placed its subhalos, and the images with
+their halos removed (null tests)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from subslope.simulation.shard import _settings_from_json
 from subslope.simulation.sources import catalog_at, pixelated_sources, place_source
 from subslope.simulation.subhalos import subhalo_population
 
-__all__ = ["stored_inputs", "rerender", "smooth_models"]
+__all__ = ["stored_inputs", "rerender", "smooth_models", "halo_free_images"]
 
 
 def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) -> dict[str, Any]:
@@ -135,3 +136,40 @@ def smooth_models(shard_path: str | os.PathLike[str], indices, *, cosmos=None) -
         inp = stored_inputs(shard, indices, cosmos=cosmos)
     out = render_smooth(inp["macro"], inp["psf"], inp["settings"], sources=inp["sources"])
     return out.detach().cpu().numpy().astype(np.float64)
+
+
+def halo_free_images(
+    shard_path: str | os.PathLike[str],
+    indices,
+    *,
+    keep_sheets: bool,
+    cosmos=None,
+    chunk: int = 64,
+) -> np.ndarray:
+    """Images ``indices`` of a shard re-rendered from their stored parameters with every
+    subhalo and line-of-sight halo removed: their negative sheets kept
+    (``keep_sheets``, the halos' own deflections dropped) or removed too. Lens, source,
+    lens light, sky and the stored noise seeds are the shard's; rounded to the stored
+    precision. ``(k, H, W)`` float32, e⁻/s per pixel."""
+    from subslope.render.pipeline import render
+
+    idx = np.atleast_1d(np.asarray(indices, dtype=np.int64))
+    out = []
+    with _shards.open_shard(shard_path) as shard:
+        shape = tuple(shard.images.shape[1:])
+        for s in range(0, idx.size, chunk):
+            inp = stored_inputs(shard, idx[s : s + chunk], cosmos=cosmos)
+            clean = render(
+                inp["macro"],
+                inp["psf"],
+                inp["settings"],
+                sources=inp["sources"],
+                subhalos=inp["subhalos"] if keep_sheets else None,
+                los=inp["los"] if keep_sheets else None,
+                sheet_centre=inp["sheet_centre"],
+                members=False,
+            )
+            for j in range(clean.shape[0]):
+                img = add_noise(clean[j], int(inp["noise_seed"][j]), instrument=inp["instrument"])
+                out.append(rounded_image(img.detach().cpu().numpy()))
+    return np.stack(out) if out else np.zeros((0, *shape), np.float32)

@@ -1,0 +1,31 @@
+"""Snakemake script of rule halo_free_profiles: ln r on the gamma grid of one test shard's
+images re-rendered without their halos (sheets kept, and removed)."""
+
+import logging
+
+import torch
+
+from subslope.devices import pick_device
+from subslope.logs import log_to_file
+from subslope.stages.halo_free import halo_free_shard
+from subslope.stats.intervals import gamma_grid
+
+log_to_file(snakemake.log[0])
+try:
+    pick_device(snakemake.params.device, key="inference.device")
+    torch.set_num_threads(snakemake.threads)
+    grid = snakemake.params.gamma_grid
+    written = halo_free_shard(
+        snakemake.config,
+        snakemake.input.model,
+        snakemake.input.shard,
+        {v: snakemake.output[v] for v in ("sheets_kept", "sheets_removed")},
+        gammas=gamma_grid(grid["low"], grid["high"], grid["n"]),
+        batch_size=snakemake.params.batch_size,
+        device=snakemake.params.device,
+        run_name=snakemake.params.run_name,
+    )
+    logging.info("wrote %s", written)
+except Exception:
+    logging.exception("halo_free_profiles failed")
+    raise
