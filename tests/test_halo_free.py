@@ -12,7 +12,7 @@ import torch
 
 from subslope.io.ratio_profiles import write_profiles
 from subslope.physics.grid import pixel_grid
-from subslope.stages.halo_free import _variant_row, label_trend, nsub_bias
+from subslope.stages.halo_free import label_trend, nsub_bias, variant_row
 from subslope.stats.intervals import gamma_grid
 from tests.test_sheet_centre import _centroid64, _pass, _population, _settings
 
@@ -85,11 +85,11 @@ def test_the_verdict_fails_an_estimator_that_reads_the_label_without_halos():
     label = np.repeat(rng.uniform(1.1, 2.9, 200), 13)
     g, blind = _profiles_reading(label, rng, 0.0)
     _, leaky = _profiles_reading(label, rng, 0.3)
-    ok = _variant_row("sheets_kept", g, blind, label, sets)
-    bad = _variant_row("sheets_removed", g, leaky, label, sets)
+    ok = variant_row("sheets_kept", g, blind, label, sets)
+    bad = variant_row("sheets_removed", g, leaky, label, sets)
     assert ok["passes"] is True and ok["n_stacks"] == 200 and ok["n_images"] == 2600
     assert bad["passes"] is False and bad["rho_stack"] > 0.5
-    assert _variant_row("original", g, leaky, label, sets)["passes"] == ""
+    assert variant_row("original", g, leaky, label, sets)["passes"] == ""
 
 
 def test_halo_free_null_refuses_too_few_sets(tmp_path):

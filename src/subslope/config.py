@@ -40,6 +40,7 @@ __all__ = [
     "validate",
     "cross_key_problems",
     "light_fit_enabled",
+    "halo_free_sets",
     "halo_free_shards",
     "active_stages",
     "STAGE_NEEDS",
@@ -367,10 +368,23 @@ def _inputs_problems(config: Mapping[str, Any]) -> list[str]:
     return []
 
 
+def halo_free_sets(config: Mapping[str, Any]) -> int:
+    """Sets of ``calibration.stack_scene`` the halo-free null test re-renders:
+    ``null_tests.halo_free_sets``, or all the scene's sets where it holds fewer (the
+    summary states the number used); 0 when the test is off."""
+    scene = config["calibration"]["stack_scene"]
+    sim = config["simulation"]["scenes"].get(scene)
+    if not sim:
+        return 0
+    per_set = int(_scene_value(config, scene, "images_per_set"))
+    have = int(sim["n_shards"]) * (int(sim["images_per_shard"]) // per_set)
+    return min(int(config["null_tests"]["halo_free_sets"]), have)
+
+
 def halo_free_shards(config: Mapping[str, Any]) -> int:
-    """How many shards of ``calibration.stack_scene`` (from the first) the halo-free null
-    test re-renders: enough for ``null_tests.halo_free_sets`` sets, 0 when it is off."""
-    n_sets = int(config["null_tests"]["halo_free_sets"])
+    """How many shards of ``calibration.stack_scene`` (from the first) hold the
+    :func:`halo_free_sets` sets."""
+    n_sets = halo_free_sets(config)
     if n_sets == 0:
         return 0
     scene = config["calibration"]["stack_scene"]
@@ -380,27 +394,16 @@ def halo_free_shards(config: Mapping[str, Any]) -> int:
 
 
 def _halo_free_problems(config: Mapping[str, Any]) -> list[str]:
-    """``null_tests.halo_free_sets`` against the shards of ``calibration.stack_scene``."""
+    """The shards of ``calibration.stack_scene`` must hold whole sets for the test."""
     scene = config["calibration"]["stack_scene"]
     sim = config["simulation"]["scenes"][scene]
     per_set = int(_scene_value(config, scene, "images_per_set"))
-    need, have = halo_free_shards(config), int(sim["n_shards"])
-    if sim["images_per_shard"] % per_set:
-        return (
-            [
-                f"config key null_tests.halo_free_sets: the shards of calibration.stack_scene "
-                f"{scene!r} must hold whole sets (images_per_shard = {sim['images_per_shard']} "
-                f"is not a multiple of images_per_set = {per_set})"
-            ]
-            if need
-            else []
-        )
-    if need > have:
-        sets = have * (sim["images_per_shard"] // per_set)
+    if config["null_tests"]["halo_free_sets"] and sim["images_per_shard"] % per_set:
         return [
             f"config key null_tests.halo_free_sets = {config['null_tests']['halo_free_sets']}: "
-            f"the {have} shards of calibration.stack_scene {scene!r} hold {sets} sets "
-            f"(allowed: 0 to {sets})"
+            f"the shards of calibration.stack_scene {scene!r} must hold whole sets "
+            f"(images_per_shard = {sim['images_per_shard']} is not a multiple of "
+            f"images_per_set = {per_set}); 0 switches the test off"
         ]
     return []
 

@@ -338,6 +338,23 @@ def null_tests_on():
     return STAGE_ON["null_tests"] and bool(config["null_tests"]["scenes"])
 
 
+# The halo-free null test's shards (rules halo_free_profiles, halo_free_null).
+HALO_FREE_N = subslope.config.halo_free_shards(config) if STAGE_ON["null_tests"] else 0
+HALO_FREE_JOBS = [
+    job
+    for job in SHARD_JOBS
+    if job["scene"] == CAL["stack_scene"] and job["shard"] < HALO_FREE_N
+]
+HALO_FREE_VARIANTS = ("sheets_kept", "sheets_removed")
+
+
+def halo_free_files(variant):
+    return [
+        f"results/null_tests/halo_free/{variant}/{job['scene']}/shard_{job['shard']}.h5"
+        for job in HALO_FREE_JOBS
+    ]
+
+
 def halo_free_on():
     """The halo-free null test runs (null_tests.halo_free_sets > 0)."""
     return STAGE_ON["null_tests"] and HALO_FREE_N > 0

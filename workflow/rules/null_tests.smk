@@ -45,22 +45,6 @@ rule null_tests:
 # null_tests.halo_free_sets sets of the stack scene re-rendered without their subhalos
 # and line-of-sight halos, their negative sheets kept and removed; gamma_MLE must not
 # follow the label. Also the bias of gamma_MLE by N_sub. Off when halo_free_sets is 0.
-HALO_FREE_N = subslope.config.halo_free_shards(config) if STAGE_ON["null_tests"] else 0
-HALO_FREE_JOBS = [
-    job
-    for job in SHARD_JOBS
-    if job["scene"] == CAL["stack_scene"] and job["shard"] < HALO_FREE_N
-]
-HALO_FREE_VARIANTS = ("sheets_kept", "sheets_removed")
-
-
-def halo_free_files(variant):
-    return [
-        f"results/null_tests/halo_free/{variant}/{job['scene']}/shard_{job['shard']}.h5"
-        for job in HALO_FREE_JOBS
-    ]
-
-
 rule halo_free_profiles:
     input:
         shard="results/simulate_shard/{scene}/shard_{shard}.h5",
@@ -112,6 +96,6 @@ rule halo_free_null:
     resources:
         mem_mb=2000,
     params:
-        n_sets=config["null_tests"]["halo_free_sets"],
+        n_sets=subslope.config.halo_free_sets(config),
     script:
         "../scripts/halo_free_null.py"

@@ -39,6 +39,7 @@ __all__ = [
     "BIAS_COLUMNS",
     "label_trend",
     "nsub_bias",
+    "variant_row",
     "halo_free_shard",
     "halo_free_null",
 ]
@@ -129,7 +130,10 @@ def nsub_bias(n_sub, gamma_true, mle, n_bins: int = 5) -> list[dict[str, Any]]:
     return rows
 
 
-def _variant_row(variant: str, gammas, prof, gamma_true, set_id) -> dict[str, Any]:
+def variant_row(variant: str, gammas, prof, gamma_true, set_id) -> dict[str, Any]:
+    """One row of :data:`HALO_FREE_COLUMNS`: the label trend of the single-image and the
+    stack γ_MLE of profiles ``prof (B, G)`` (stacks: the images of each ``set_id``) and
+    the verdict (blank for the original images, which are not tested)."""
     single = np.atleast_1d(intervals.mle(prof, gammas))
     ids, inv = np.unique(set_id, return_inverse=True)
     stacked = intervals.stack(prof, inv)
@@ -259,13 +263,13 @@ def halo_free_null(
         raise ValueError(f"the test shards hold {n_sub.size} images, their profiles {keep.size}")
     g = orig["gammas"]
     label, set_id = orig["gamma_true"][keep], orig["set_id"][keep]
-    rows = [_variant_row("original", g, orig["log_ratio"][keep], label, set_id)]
+    rows = [variant_row("original", g, orig["log_ratio"][keep], label, set_id)]
     for variant in VARIANTS[1:]:
         prof = read_profiles(variants[variant])
         sel = _first_sets(prof, n_sets, variant)
         if not np.array_equal(prof["gamma_true"][sel], label):
             raise ValueError(f"{variant}: the halo-free profiles are not of the original images")
-        rows.append(_variant_row(variant, g, prof["log_ratio"][sel], label, set_id))
+        rows.append(variant_row(variant, g, prof["log_ratio"][sel], label, set_id))
     table = pd.DataFrame(rows, columns=HALO_FREE_COLUMNS)
     write_text(out_csv, table.to_csv(index=False))
     single = np.atleast_1d(intervals.mle(orig["log_ratio"][keep], g))
