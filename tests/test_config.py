@@ -32,6 +32,8 @@ SHIPPED_DEVIATIONS = {
     ("training", "batch_size"),
     ("training", "num_workers"),
     ("training", "checkpoint_every"),
+    ("training", "min_delta"),
+    ("training", "inputs"),
     ("null_tests", "scenes"),
     ("systematics", "variants"),
     ("systematics", "common"),
