@@ -51,7 +51,11 @@ def _config(args) -> dict:
         },
         "simulation": {
             "scenes": {"train": {"n_shards": 1, "images_per_shard": args.images}},
-            "render": {"compile": args.compile, "batch_size": args.batch},
+            "render": {
+                "compile": args.compile,
+                "batch_size": args.batch,
+                "batching": args.batching,
+            },
             "shard_cache": None,
         },
     }
@@ -66,6 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--n-sub", type=int, default=1500)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--compile", choices=("auto", "on", "off"), default="on")
+    ap.add_argument("--batching", choices=("auto", "per_image", "sub_batch"), default="auto")
     ap.add_argument("--lenstronomy", type=int, default=0, metavar="K")
     data = Path(os.environ.get("SUBSLOPE_DATA_MIRROR", ROOT / "resources"))
     ap.add_argument("--data", type=Path, default=data)
@@ -103,7 +108,7 @@ def main(argv=None) -> int:
     print(f"machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']}")
     print(f"load: {info['uptime']}")
     print(f"{args.images} images x {args.repeats} repeats, N_sub = {args.n_sub} + LoS, "
-          f"compile {args.compile}, batch {args.batch}")  # fmt: skip
+          f"compile {args.compile}, batch {args.batch}, batching {args.batching}")  # fmt: skip
     print("| per image | median | min | max |")
     print("|---|---|---|---|")
     for k, v in rows.items():
