@@ -70,7 +70,13 @@ def main(argv=None) -> int:
     ap.add_argument("--n-sub", type=int, default=1500)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--compile", choices=("auto", "on", "off"), default="on")
-    ap.add_argument("--batching", choices=("auto", "per_image", "sub_batch"), default="auto")
+    ap.add_argument(
+        "--batching",
+        choices=("auto", "per_image", "sub_batch"),
+        default="auto",
+        help="simulation.render.batching; sub_batch sizes batches from max_elements, "
+        "which is one image at N_sub = 1500 on the CPU",
+    )
     ap.add_argument("--lenstronomy", type=int, default=0, metavar="K")
     data = Path(os.environ.get("SUBSLOPE_DATA_MIRROR", ROOT / "resources"))
     ap.add_argument("--data", type=Path, default=data)
