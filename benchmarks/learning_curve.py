@@ -45,6 +45,7 @@ SCENES = ("train", "validation", "test_epl")
 COLUMNS = (
     "curve",
     "inputs",
+    "augment",
     "n_train",
     "val_loss",
     "epochs",
@@ -59,21 +60,24 @@ COLUMNS = (
 )
 
 
-def _config(path: str, resources: str | None) -> dict:
+def _config(path: str, resources: str | None, light_fit: bool = True) -> dict:
     from subslope import config as cfgmod
 
     config = cfgmod.load(path, env=False)
     if resources:
         config["data"]["resources_dir"] = resources
-    config["simulation"]["light_fit"] = True
+    config["simulation"]["light_fit"] = bool(light_fit)
+    if not light_fit and config["training"]["inputs"] == "light_subtracted":
+        config["training"]["inputs"] = "whitened"  # the runs set their own transform
     return cfgmod.validate(config)
 
 
 def _shard_task(args) -> tuple[str, float]:
-    """Make one shard with its lens-light fit; returns its path and the core-seconds it
-    cost (for a copied shard: its campaign job's, from the benchmark file beside it, plus
-    the fit), kept in ``<shard>.seconds`` for reruns."""
-    config_path, resources, scene, index, source, dst = args
+    """Make one shard, with its lens-light fit when ``light_fit``; returns its path and
+    the core-seconds it cost (for a campaign shard: its campaign job's, from the
+    benchmark file beside it, plus the fit), kept in ``<shard>.seconds`` for reruns.
+    Without the fit a campaign shard is linked, not copied."""
+    config_path, resources, scene, index, source, dst, light_fit = args
     import torch
 
     torch.set_num_threads(1)
@@ -81,13 +85,17 @@ def _shard_task(args) -> tuple[str, float]:
 
     seconds = Path(dst + ".seconds")
     if not seconds.exists():
-        config = _config(config_path, resources)
+        config = _config(config_path, resources, light_fit)
         counts = config["simulation"]["scenes"][scene]
         counts["n_shards"] = max(int(counts["n_shards"]), index + 1)
         Path(dst).parent.mkdir(parents=True, exist_ok=True)
         t = time.perf_counter()
         if source and Path(source).exists():
-            attach_light_fit(config, source, dst)
+            if light_fit:
+                attach_light_fit(config, source, dst)
+            else:
+                Path(dst).unlink(missing_ok=True)
+                os.symlink(Path(source).resolve(), dst)
             tsv = Path(source).parents[2] / "benchmarks" / "simulate_shard" / scene
             job = tsv / f"shard_{index}.tsv"
             before = (
@@ -100,20 +108,24 @@ def _shard_task(args) -> tuple[str, float]:
     return dst, float(seconds.read_text())
 
 
-def shard_tasks(curves, out: Path, resources, n_train_shards: int) -> list[tuple]:
-    """One task per shard of every curve: (config, resources, scene, index, source, dst);
-    training shards beyond the campaign's are simulated (shard k is the same file in a
-    campaign of any size)."""
+def shard_tasks(
+    curves, out: Path, resources, n_train_shards: int, light_fit: bool = True
+) -> list[tuple]:
+    """One task per shard of every curve: (config, resources, scene, index, source, dst,
+    light_fit); training shards beyond the campaign's are simulated (shard k is the same
+    file in a campaign of any size). Shards with the fit and without it live in separate
+    folders (``shards`` and ``shards_nofit``)."""
+    folder_name = "shards" if light_fit else "shards_nofit"
     tasks = []
     for label, (config_path, folder) in curves.items():
-        config = _config(config_path, resources)
+        config = _config(config_path, resources, light_fit)
         for scene in SCENES:
             n = config["simulation"]["scenes"][scene]["n_shards"]
             n = n_train_shards[label] if scene == "train" else n
             for k in range(n):
                 src = str(Path(folder) / scene / f"shard_{k}.h5") if folder else ""
-                dst = str(out / label / "shards" / scene / f"shard_{k}.h5")
-                tasks.append((config_path, resources, scene, k, src, dst))
+                dst = str(out / label / folder_name / scene / f"shard_{k}.h5")
+                tasks.append((config_path, resources, scene, k, src, dst, light_fit))
     return tasks
 
 
@@ -178,7 +190,7 @@ def held_out_metrics(g, prof, gamma, sets, n: int, level: float = 0.68) -> dict:
 
 def _run_task(args) -> dict:
     """Train and evaluate one (curve, transform, n); the row of the CSV."""
-    label, config_path, resources, inputs, n, out, sim_seconds = args
+    label, config_path, resources, inputs, augment, n, out, sim_seconds = args
     import torch
 
     torch.set_num_threads(1)
@@ -186,14 +198,17 @@ def _run_task(args) -> dict:
     from subslope.nre.whitening import compute_whitening
     from subslope.stages.train import input_transform, training_section
 
-    config = _config(config_path, resources)
+    light_fit = inputs == "light_subtracted"
+    config = _config(config_path, resources, light_fit)
     config["training"]["inputs"] = inputs
-    shards = Path(out) / label / "shards"
+    config["training"]["augment"] = augment
+    shards = Path(out) / label / _shard_folder(out, label, light_fit)
     per_shard = config["simulation"]["scenes"]["train"]["images_per_shard"]
     train_paths = [str(shards / "train" / f"shard_{k}.h5") for k in range(n // per_shard)]
     val = sorted(map(str, (shards / "validation").glob("shard_*.h5")))
     test = sorted(map(str, (shards / "test_epl").glob("shard_*.h5")), key=_index)
-    run = Path(out) / label / "runs" / f"{inputs}_n{n}"
+    suffix = "" if augment == "none" else f"_{augment}"
+    run = Path(out) / label / "runs" / f"{inputs}{suffix}_n{n}"
     t = time.perf_counter()
     white = compute_whitening(train_paths, run / "whitening.json", inputs=input_transform(config))
     summary = train(training_section(config), train_paths, val, white, run, run / "ckpt")
@@ -204,6 +219,7 @@ def _run_task(args) -> dict:
     return {
         "curve": label,
         "inputs": inputs,
+        "augment": augment,
         "n_train": n,
         "val_loss": summary["best_val_loss"],
         "epochs": summary["epochs"],
@@ -216,6 +232,13 @@ def _run_task(args) -> dict:
         "core_hours": (time.perf_counter() - t) / 3600,
         "sim_core_hours": sim_seconds * n / per_shard / 3600,
     }
+
+
+def _shard_folder(out, label: str, light_fit: bool) -> str:
+    """``shards`` (with the lens-light fit) for runs that need the fit, and for the others
+    too when this output folder has no fit-free shards (earlier runs made only those)."""
+    nofit = Path(out) / label / "shards_nofit"
+    return "shards" if light_fit or not nofit.exists() else "shards_nofit"
 
 
 def _index(path: str) -> int:
@@ -244,13 +267,28 @@ def trend(n, rho, n_stacks, target: float = 0.9, draws: int = 4000, seed: int = 
 
 
 def _read_rows(path: Path) -> list[dict]:
+    """The table's rows; rows of tables written before the ``augment`` column read
+    ``none`` there."""
     if not path.exists():
         return []
     with open(path) as fh:
-        return list(csv.DictReader(fh))
+        return [{"augment": "none", **r} for r in csv.DictReader(fh)]
 
 
 def _append_row(path: Path, row: dict) -> None:
+    """Append ``row``; a table with an older header is rewritten with :data:`COLUMNS`."""
+    old = _read_rows(path)
+    header = None
+    if path.exists():
+        with open(path) as fh:
+            header = next(csv.reader(fh), None)
+    if old and header != list(COLUMNS):
+        tmp = path.with_suffix(".tmp")
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=COLUMNS)
+            w.writeheader()
+            w.writerows(old)
+        os.replace(tmp, path)
     new = not path.exists()
     with open(path, "a", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
@@ -261,9 +299,15 @@ def _append_row(path: Path, row: dict) -> None:
         os.fsync(fh.fileno())
 
 
+def _curve_key(row: dict) -> tuple[str, ...]:
+    """(curve, transform) and the augmentation where there is one."""
+    aug = row.get("augment", "none")
+    return (row["curve"], row["inputs"]) + (() if aug == "none" else (aug,))
+
+
 def figure(rows: list[dict], path: Path) -> dict:
-    """Validation loss and ρ against n per (curve, transform), with the ρ trends; returns
-    the trends by ``curve/inputs``."""
+    """Validation loss and ρ against n per (curve, transform, augmentation), with the ρ
+    trends; returns the trends by ``curve/inputs[/augment]``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -271,10 +315,8 @@ def figure(rows: list[dict], path: Path) -> dict:
 
     fig, (ax_l, ax_r) = plt.subplots(1, 2, figsize=(10, 4))
     trends = {}
-    for key in sorted({(r["curve"], r["inputs"]) for r in rows}):
-        sel = sorted(
-            (r for r in rows if (r["curve"], r["inputs"]) == key), key=lambda r: int(r["n_train"])
-        )
+    for key in sorted({_curve_key(r) for r in rows}):
+        sel = sorted((r for r in rows if _curve_key(r) == key), key=lambda r: int(r["n_train"]))
         n = np.array([int(r["n_train"]) for r in sel])
         rho = np.nan_to_num([float(r["rho"]) for r in sel], nan=0.0)
         ns = np.array([int(r["n_stacks"]) for r in sel])
@@ -312,6 +354,13 @@ def main(argv=None) -> None:
         default=None,
         help="training sizes of every curve after the first (default: --sizes)",
     )
+    ap.add_argument(
+        "--augment",
+        nargs="+",
+        default=["none"],
+        choices=["none", "dihedral"],
+        help="training.augment of the runs (every curve)",
+    )
     ap.add_argument("--resources", default=None, help="data folder (default: the config's)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--figure", action="store_true")
@@ -323,7 +372,8 @@ def main(argv=None) -> None:
         curves[label] = (config_path, folder)
     args.out.mkdir(parents=True, exist_ok=True)
     table = args.out / "learning_curve.csv"
-    done = {(r["curve"], r["inputs"], int(r["n_train"])) for r in _read_rows(table)}
+    done = {(r["curve"], r["inputs"], r["augment"], int(r["n_train"])) for r in _read_rows(table)}
+    light_fit = "light_subtracted" in set(args.inputs) | set(args.reference_inputs)
     sizes = {
         label: args.sizes if k == 0 else (args.reference_sizes or args.sizes)
         for k, label in enumerate(curves)
@@ -335,7 +385,7 @@ def main(argv=None) -> None:
         ]
         for label, v in sizes.items()
     }
-    tasks = shard_tasks(curves, args.out, args.resources, n_train)
+    tasks = shard_tasks(curves, args.out, args.resources, n_train, light_fit)
     with ProcessPoolExecutor(args.workers) as pool:
         cost = {}
         for dst, sec in pool.map(_shard_task, tasks):
@@ -343,13 +393,16 @@ def main(argv=None) -> None:
             print(f"shard {dst}: {sec:.1f} s", flush=True)
         runs = []
         for k, (label, (config_path, _)) in enumerate(curves.items()):
-            sim = float(np.median(cost[args.out / label / "shards" / "train"]))
+            folder = "shards" if light_fit else "shards_nofit"
+            sim = float(np.median(cost[args.out / label / folder / "train"]))
             for inputs in args.inputs if k == 0 else args.reference_inputs:
-                for n in sizes[label]:
-                    if (label, inputs, n) not in done:
-                        runs.append(
-                            (label, config_path, args.resources, inputs, n, str(args.out), sim)
-                        )
+                for augment in args.augment:
+                    for n in sizes[label]:
+                        if (label, inputs, augment, n) not in done:
+                            runs.append(
+                                (label, config_path, args.resources, inputs, augment, n)
+                                + (str(args.out), sim)
+                            )
         for future in as_completed([pool.submit(_run_task, r) for r in runs]):
             row = future.result()
             _append_row(table, row)

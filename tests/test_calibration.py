@@ -12,8 +12,10 @@ from subslope.stats.calibration import (
     FewSamplesWarning,
     calibration_table,
     coverage,
+    coverage_sigma,
     expected_coverage,
     make_stacks,
+    overconfident,
     split,
     stack_t_true,
     threshold,
@@ -189,3 +191,20 @@ def test_overconfident_estimator_breaks_wilks_not_empirical_calibration(rng):
     assert abs(row.coverage - 0.68) < 3 * sig
     assert row.coverage_wilks < 0.68 - 5 * sig
     assert row.tau == pytest.approx(2 * 0.989, rel=0.1)
+
+
+def test_coverage_sigma_is_the_scatter_of_split_conformal_coverage():
+    """Exact t ~ χ²₁ (any continuous law gives the same ranks): the held-out coverage of
+    the conformal threshold of 200 calibration stacks, measured on 200 others, scatters
+    by coverage_sigma over many repetitions; the binomial error of the held-out stacks
+    alone is √2 too small for an even split."""
+    rng = np.random.default_rng(11)
+    n_c = n_h = 200
+    cov = np.array(
+        [np.mean(rng.random(n_h) <= threshold(rng.random(n_c), 0.68)) for _ in range(4000)]
+    )
+    sigma = float(coverage_sigma(0.68, n_c, n_h))
+    assert abs(cov.std() / sigma - 1) < 0.06
+    assert cov.std() > 1.3 * np.sqrt(0.68 * 0.32 / n_h)
+    assert abs(cov.mean() - 0.68) < 0.003 + 1 / (n_c + 1)  # conformal: at or just above
+    assert overconfident(0.58, sigma, 0.68) and not overconfident(0.60, sigma, 0.68)

@@ -34,6 +34,7 @@ SHIPPED_DEVIATIONS = {
     ("training", "checkpoint_every"),
     ("training", "min_delta"),
     ("training", "inputs"),
+    ("training", "augment"),
     ("null_tests", "scenes"),
     ("systematics", "variants"),
     ("systematics", "common"),

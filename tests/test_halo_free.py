@@ -12,7 +12,13 @@ import torch
 
 from subslope.io.ratio_profiles import write_profiles
 from subslope.physics.grid import pixel_grid
-from subslope.stages.halo_free import label_trend, nsub_bias, variant_row
+from subslope.stages.halo_free import (
+    label_trend,
+    nsub_bias,
+    partial_spearman,
+    sheet_channel,
+    variant_row,
+)
 from subslope.stats.intervals import gamma_grid
 from tests.test_sheet_centre import _centroid64, _pass, _population, _settings
 
@@ -105,3 +111,47 @@ def test_halo_free_null_refuses_too_few_sets(tmp_path):
     )
     with pytest.raises(ValueError, match="null_tests.halo_free_sets = 5.*only 2 sets"):
         halo_free_null([path], {}, [], tmp_path / "a.csv", tmp_path / "b.csv", n_sets=5)
+
+
+def test_partial_spearman_removes_what_the_given_variables_explain():
+    rng = np.random.default_rng(5)
+    z1, z2 = rng.normal(size=(2, 500))
+    x = z1 + 0.5 * z2 + 0.1 * rng.normal(size=500)
+    y = z1 + z2 + 0.1 * rng.normal(size=500)
+    from scipy.stats import spearmanr
+
+    assert spearmanr(x, y)[0] > 0.8
+    assert abs(partial_spearman(x, y, [z1, z2])) < 0.2
+    w = rng.normal(size=500)
+    assert partial_spearman(x + w, y + w, [z1, z2]) > 0.5  # a shared part the z do not explain
+    assert partial_spearman(z1, y, [z1]) == 0.0
+
+
+def test_sheet_channel_tells_the_sheet_amplitude_from_another_channel():
+    """Sheets that follow the label; a kept-sheet γ_MLE that reads only the sheets passes
+    the partial test, one that also reads the label beyond them does not."""
+    rng = np.random.default_rng(6)
+    label = rng.uniform(1.1, 2.9, 300)
+    sheets = {
+        "subhalos": -np.exp(-(label - 1.0)) + 0.05 * rng.normal(size=300),
+        "los": -0.3 * np.exp(-(label - 1.0)) + 0.05 * rng.normal(size=300),
+    }
+    reads_sheets = 2.0 - sheets["subhalos"] - sheets["los"] + 0.5 * rng.normal(size=300)
+    rows = sheet_channel(label, sheets, reads_sheets)
+    by = {(r["quantity"], r["against"]): r for r in rows}
+    assert by[("sheet_kappa_subhalos", "label")]["rho"] > 0.9
+    assert not by[("sheet_kappa_los", "label")]["within"]
+    last = rows[-1]
+    assert last["given"] == "sheet_kappa_subhalos + sheet_kappa_los"
+    assert last["within"] and last["bound"] == pytest.approx(2 / math.sqrt(300 - 1 - 7))
+    leaky = reads_sheets + 2.0 * (label - label.mean()) * rng.uniform(0.8, 1.2, 300)
+    assert not sheet_channel(label, sheets, leaky)[-1]["within"]
+    # a population absent from the scene (zero sheets) is left out
+    none = sheet_channel(label, {"subhalos": sheets["subhalos"], "los": np.zeros(300)}, leaky)
+    assert none[-1]["given"] == "sheet_kappa_subhalos" and len(none) == 3
+
+
+def test_sheet_channel_with_fewer_stacks_than_regressors_has_no_partial_row():
+    label = np.array([1.2, 1.9, 2.5, 2.8])
+    rows = sheet_channel(label, {"subhalos": -1 / label, "los": -0.1 / label**2}, label)
+    assert [r["given"] for r in rows] == [""] * 4

@@ -134,14 +134,17 @@ def test_shard_batches_subtract_the_stored_fit(tmp_path, lenses):
     ds = ShardBatches([path], 5, (0.0, 1.0), shuffle=False, inputs=SUBTRACTED)
     model = model_images(fit, PSF, NPIX, SCALE)
     ref = preprocess(images - model, np.full(5, 0.8), 0.0, 0.0, 0.0, 1.0, pixel_scale=SCALE)
-    np.testing.assert_allclose(ds[0]["x"][:, 0].numpy(), ref, atol=1e-6)
+    # the float32 model of a batch of 2 and of 5 differ by a few units of its last place
+    # (the vectorised and scalar loops round differently on some CPUs)
+    tol = 8 * np.finfo(np.float32).eps * float(np.abs(model).max())
+    np.testing.assert_allclose(ds[0]["x"][:, 0].numpy(), ref, atol=tol)
     # shuffled blocks cut by the batch boundaries: each image gets its own model
     ds = ShardBatches([path], 2, (0.0, 1.0), shuffle=True, block_size=3, inputs=SUBTRACTED)
     seen = []
     for b in range(len(ds)):
         batch = ds[b]
         seen += batch["index"].tolist()
-        np.testing.assert_allclose(batch["x"][:, 0].numpy(), ref[batch["index"].numpy()], atol=1e-6)
+        np.testing.assert_allclose(batch["x"][:, 0].numpy(), ref[batch["index"].numpy()], atol=tol)
     assert sorted(seen) == list(range(5))
     import h5py
 

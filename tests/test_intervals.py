@@ -215,3 +215,28 @@ def test_log_ratio_profiles_real_estimator_matches_log_ratio_grid(rng):
             .numpy()
         )
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_symmetrized_profiles_average_the_eight_views(rng):
+    """symmetrize=True is the mean of the profiles of the eight rotated/mirrored images
+    (lens at the origin, so the mask turns into itself), and gives a rotated image the
+    same profile as the original."""
+    from subslope.nre import build_model
+    from subslope.nre.augment import dihedral
+
+    torch.manual_seed(1)
+    model = build_model({"preset": "reduced"}, gamma_mean=2.0, gamma_std=0.5).eval()
+    images = rng.normal(1.0, 1.0, size=(3, 100, 100)).astype(np.float32)
+    grid = gamma_grid(n=11)
+
+    def prof(x, sym):
+        return log_ratio_profiles(
+            model, x, 1.1, 0.0, 0.0, (1.0, 1.0), grid, device="cpu", symmetrize=sym
+        )
+
+    sym = prof(images, True)
+    views = [prof(dihedral(torch.as_tensor(images), k).numpy(), False) for k in range(8)]
+    np.testing.assert_allclose(sym, np.mean(views, axis=0), rtol=1e-5, atol=1e-5)
+    assert np.max(np.abs(views[1] - views[0])) > 1e-3  # the network itself is not invariant
+    turned = prof(dihedral(torch.as_tensor(images), 3).numpy(), True)
+    np.testing.assert_allclose(turned, sym, rtol=1e-5, atol=1e-5)

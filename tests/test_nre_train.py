@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import functools
 import math
 
 import pytest
@@ -25,7 +26,7 @@ def shards(tmp_path_factory):
     return train_paths, val_paths
 
 
-def _config(**kw):
+def _config_of(**kw):
     cfg = {
         "arch": TINY,
         "batch_size": 16,
@@ -42,10 +43,13 @@ def _config(**kw):
 
 
 WHITENING = (11.0, 3.0)
+_config = _config_of
 
 
-def test_resume_reproduces_uninterrupted_run(shards, tmp_path):
+@pytest.mark.parametrize("augment", ["none", "dihedral"])
+def test_resume_reproduces_uninterrupted_run(shards, tmp_path, augment):
     tr, va = shards
+    _config = functools.partial(_config_of, augment=augment)
     full = train(_config(), tr, va, WHITENING, tmp_path / "a_out", tmp_path / "a_ck", device="cpu")
     assert full["finished"] and full["epochs"] == 3
 

@@ -4,14 +4,17 @@ and the LoS profile parameters."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
+import torch
 from scipy import stats
 
 from subslope import config as cfgmod
 from subslope.io import shards
 from subslope.physics import concentration, cosmology
+from subslope.physics.grid import pixel_grid
 from subslope.simulation import los as losmod
 from subslope.simulation import rerender
 from subslope.simulation import shard as simulate
@@ -106,6 +109,47 @@ def test_rerender_bit_for_bit(config, train_shard):
             rerender.rerender(train_shard, i, noise=False), clean["images"][i]
         )
     assert not np.array_equal(clean["images"][0], stored[0])
+
+
+def test_subhalo_sheet_kappa_is_the_renderers_sheet(config, train_shard):
+    """The diagnostic sheet κ of a stored image equals the κ the renderer's population
+    pass gives the same members on the pixel centres (float64, direct sums), and the
+    strided mean is close to it."""
+    from subslope.render.kernels import kernels_for
+    from subslope.render.populations import pack_population, population_pass
+
+    with shards.open_shard(train_shard) as s:
+        n = len(s)
+        inp = rerender.stored_inputs(s, np.arange(n))
+        npix = s.images.shape[-1]
+    subs = inp["subhalos"]
+    settings = dataclasses.replace(
+        inp["settings"], dtype=torch.float64, compile="off", population="direct"
+    )
+    both = rerender.sheet_kappas(train_shard, np.arange(n), stride=1)
+    kappa = both["subhalos"]
+    los_counts = inp["los"].counts if inp["los"] is not None else np.zeros(n, int)
+    assert np.all((both["los"] < 0) == (np.asarray(los_counts) > 0))
+    coarse = rerender.sheet_kappas(train_shard, np.arange(n), stride=4)["subhalos"]
+    x, y = pixel_grid(npix, settings.pixel_scale, dtype=torch.float64)
+    x, y = x.reshape(1, -1), y.reshape(1, -1)
+    first = np.concatenate([[0], np.cumsum(subs.counts)])
+    assert subs.counts.max() > 0
+    for j in range(n):
+        if subs.counts[j] == 0:
+            assert kappa[j] == 0.0
+            continue
+        sel = slice(first[j], first[j + 1])
+        flat = {
+            k: np.asarray(getattr(subs, k))[sel] for k in ("amp", "gamma", "e1", "e2", "x", "y")
+        }
+        pop = pack_population(
+            "epl", flat, subs.counts[j : j + 1], settings.n_terms, torch.float64, "cpu"
+        )
+        kern = kernels_for(settings, torch.device("cpu"))
+        _, _, k_sheet = population_pass(pop, x, y, settings, kern, npix * npix)
+        assert kappa[j] < 0 and kappa[j] == pytest.approx(float(k_sheet), rel=1e-9)
+        assert coarse[j] == pytest.approx(kappa[j], rel=0.1)
 
 
 def test_images_do_not_depend_on_batch_size(config, train_shard):

@@ -86,6 +86,7 @@ rule halo_free_null:
     output:
         csv=update("results/null_tests/halo_free.csv"),
         bias=update("results/null_tests/nsub_bias.csv"),
+        sheet=update("results/null_tests/sheet_channel.csv"),
     log:
         "logs/halo_free_null.log",
     benchmark:

@@ -15,6 +15,7 @@ try:
         list(inp.shards),
         snakemake.output.csv,
         snakemake.output.bias,
+        snakemake.output.sheet,
         n_sets=snakemake.params.n_sets,
     )
 except Exception:

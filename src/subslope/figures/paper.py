@@ -293,7 +293,9 @@ def coverage_figure(
 
     Left: observed coverage at the table's level (0.68) for each N with its binomial
     error bar, with the empirical thresholds τ_N (filled) and with Wilks' χ²₁ threshold
-    (hollow); the target is the horizontal line. Right: coverage against credibility
+    (hollow), the calibrated ones with the σ of
+    :func:`subslope.stats.calibration.coverage_sigma` where the table has it (the threshold's
+    own scatter included); the target is the horizontal line. Right: coverage against credibility
     level (``levels``); ``coverages_empirical``/``coverages_wilks`` are one curve ``(L,)``
     or a mapping ``N → (L,)``. A calibrated procedure follows the diagonal within the grey
     ±2σ binomial band of the fewest held-out stacks of any N; below it means
@@ -335,7 +337,7 @@ def _coverage_panel(ax1, table, level: float) -> None:
     ax1.errorbar(
         n - 0.08,
         table["coverage"],
-        yerr=table["coverage_err"],
+        yerr=table["coverage_sigma"] if "coverage_sigma" in table else table["coverage_err"],
         fmt="o",
         color=C_HST,
         capsize=2.5,

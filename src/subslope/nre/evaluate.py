@@ -4,7 +4,9 @@ Images go through the same pre-processing as in training (the input transform of
 :mod:`subslope.nre.inputs`, whitening with the training statistics and the circular
 mask of ``mask_factor`` × θ_E about the lens centre,
 :mod:`subslope.nre.preprocess`); the trunk runs once per image and the head on every
-(image, γ) pair (:meth:`subslope.nre.models.RatioEstimator.log_ratio_grid`).
+(image, γ) pair (:meth:`subslope.nre.models.RatioEstimator.log_ratio_grid`). An
+estimator trained with ``augment: dihedral`` is evaluated on the eight symmetric views
+of every image and its ln r̂ averaged (``symmetrize``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 import torch
 
 from subslope.devices import pick_device
+from subslope.nre.augment import N_DIHEDRAL, dihedral
 from subslope.nre.inputs import InputTransform
 from subslope.nre.preprocess import preprocess, read_whitening
 from subslope.nre.training_config import training_defaults
@@ -46,6 +49,7 @@ def log_ratio_profiles(
     mask_factor: float | None = 1.5,
     inputs: InputTransform | None = None,
     light=None,
+    symmetrize: bool = False,
 ) -> np.ndarray:
     """``ln r̂(x_b|γ_g)`` of every image on the grid: ``(B, G)`` float64.
 
@@ -73,6 +77,9 @@ def log_ratio_profiles(
     inputs, light:
         The input transform (``None``: the pixels as given) and, where it subtracts the
         lens light, the fitted model of every image (sliced like ``images``).
+    symmetrize:
+        Average ln r̂ over the eight symmetric views of every pre-processed image (see
+        :func:`_log_ratio`; eight trunk passes an image).
     """
     g = check_grid(gammas)
     inputs = inputs or InputTransform()
@@ -98,17 +105,24 @@ def log_ratio_profiles(
                 )
             x = preprocess(
                 inputs.apply(x, light[s:e] if inputs.needs_light else None),
-                te[s:e],
-                cx[s:e],
-                cy[s:e],
-                mean,
-                std,
-                pixel_scale=pixel_scale,
-                mask_factor=mask_factor,
+                te[s:e], cx[s:e], cy[s:e], mean, std,
+                pixel_scale=pixel_scale, mask_factor=mask_factor,
+            )  # fmt: skip
+            out[s:e] = _log_ratio(
+                model, torch.as_tensor(x, dtype=dtype, device=dev), grid_t, symmetrize
             )
-            xt = torch.as_tensor(x, dtype=dtype, device=dev)
-            out[s:e] = model.log_ratio_grid(xt, grid_t).double().cpu().numpy()
     return out
+
+
+def _log_ratio(model, x, grid, symmetrize: bool) -> np.ndarray:
+    """ln r̂ of the pre-processed batch ``x`` on ``grid``, float64; with ``symmetrize``
+    the mean over the eight symmetric views of every image (:mod:`subslope.nre.augment`):
+    for an estimator trained with ``augment: dihedral`` the true ln r is the same for all
+    eight, so their mean is a lower-variance estimate of it."""
+    if not symmetrize:
+        return model.log_ratio_grid(x, grid).double().cpu().numpy()
+    views = [model.log_ratio_grid(dihedral(x, k), grid) for k in range(N_DIHEDRAL)]
+    return torch.stack(views).double().mean(0).cpu().numpy()
 
 
 def estimator_profiles(
@@ -126,7 +140,9 @@ def estimator_profiles(
     light=None,
 ) -> np.ndarray:
     """:func:`log_ratio_profiles` with the input transform, whitening and pre-processing
-    the estimator was trained with (``meta`` of :func:`subslope.nre.train.load_estimator`);
+    the estimator was trained with (``meta`` of :func:`subslope.nre.train.load_estimator`),
+    averaged over the eight symmetries of the grid when it was trained with them
+    (``training.augment: dihedral``);
     ``light``: the fitted lens light of every image, for an estimator of lens-light-
     subtracted inputs. A model file without pre-processing metadata falls back on
     ``pixel_scale`` (if given) and on the training defaults of the config schema."""
@@ -147,4 +163,5 @@ def estimator_profiles(
         mask_factor=prep.get("mask_factor", defaults["mask_factor"]),
         inputs=InputTransform.from_json(meta.get("inputs")),
         light=light,
+        symmetrize=(meta.get("config") or {}).get("augment", "none") == "dihedral",
     )

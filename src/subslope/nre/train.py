@@ -50,6 +50,7 @@ from tqdm.auto import tqdm
 from subslope.devices import pick_device
 from subslope.io.atomic import atomic_write
 
+from .augment import random_dihedral, step_generator
 from .checkpoints import CheckpointError, atomic_save, rng_state, set_rng_state, torch_load
 from .data import ShardBatches, make_loader, read_labels
 from .inputs import InputTransform
@@ -328,6 +329,8 @@ def _step(run: _Run, batch, pin: bool) -> int:
     """One optimiser step on ``batch``; returns the number of images."""
     x = batch["x"].to(run.device, non_blocking=pin)
     g = batch["gamma"].to(run.device, non_blocking=pin)
+    if run.cfg["augment"] == "dihedral":
+        x = random_dihedral(x, step_generator(run.cfg["seed"], run.state["step"]))
     ctx = (
         torch.autocast(run.device.type, dtype=run.amp_dtype)
         if run.amp_dtype is not None

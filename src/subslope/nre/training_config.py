@@ -13,6 +13,9 @@ from typing import Any
 
 from subslope.config import schema_defaults
 
+#: Values of ``training.augment`` (:mod:`subslope.nre.augment`, which needs torch).
+AUGMENTATIONS = ("none", "dihedral")
+
 __all__ = [
     "WORKFLOW_KEYS",
     "RESUME_SAFE_KEYS",
@@ -81,6 +84,10 @@ def resolve_config(config: Mapping[str, Any] | None) -> dict[str, Any]:
         )
     if cfg["data"] not in ("shards", "stream"):
         raise ValueError(f"training.data must be 'shards' or 'stream', got {cfg['data']!r}")
+    if cfg["augment"] not in AUGMENTATIONS:
+        raise ValueError(
+            f"training.augment must be one of {', '.join(AUGMENTATIONS)}; got {cfg['augment']!r}"
+        )
     if cfg["amp"] not in ("auto", "bf16", "fp16", "off"):
         raise ValueError(f"training.amp must be one of auto, bf16, fp16, off; got {cfg['amp']!r}")
     if not (

@@ -176,6 +176,7 @@ COVERAGE_COLUMNS = (
     "n_heldout",
     "coverage",
     "coverage_err",
+    "coverage_sigma",
     "wilson_lo",
     "wilson_hi",
     "coverage_wilks",
@@ -199,6 +200,7 @@ def summarize_coverage(
     for p in npz_paths:
         with np.load(p) as z:
             n = int(z["n"])
+            sigma = calibration.coverage_sigma(z["level"], z["n_calibration"], z["n_heldout"])
             rows.append(
                 {
                     "n_images": n,
@@ -211,13 +213,14 @@ def summarize_coverage(
                     "n_heldout": int(z["n_heldout"]),
                     "coverage": float(z["coverage"]),
                     "coverage_err": float(z["coverage_err"]),
+                    "coverage_sigma": float(sigma),
                     "wilson_lo": float(z["wilson_lo"]),
                     "wilson_hi": float(z["wilson_hi"]),
                     "coverage_wilks": float(z["coverage_wilks"]),
                     "coverage_wilks_err": float(z["coverage_wilks_err"]),
                     "level": float(z["level"]),
                     "overconfident": bool(
-                        calibration.overconfident(z["coverage"], z["coverage_err"], z["level"])
+                        calibration.overconfident(z["coverage"], sigma, z["level"])
                     ),
                 }
             )

@@ -37,7 +37,10 @@ __all__ = [
     "VARIANTS",
     "HALO_FREE_COLUMNS",
     "BIAS_COLUMNS",
+    "SHEET_COLUMNS",
     "label_trend",
+    "partial_spearman",
+    "sheet_channel",
     "nsub_bias",
     "variant_row",
     "halo_free_shard",
@@ -76,6 +79,73 @@ BIAS_COLUMNS = (
     "bias_p50",
     "bias_p84",
 )
+
+
+#: Columns of ``sheet_channel.csv``: how the kept sheets carry γ (:func:`sheet_channel`).
+SHEET_COLUMNS = ("quantity", "against", "given", "n_stacks", "rho", "p", "bound", "within")
+
+
+def _normal_scores(v) -> np.ndarray:
+    from scipy.stats import norm, rankdata
+
+    r = rankdata(v)
+    return norm.ppf((r - 0.5) / r.size)
+
+
+def partial_spearman(x, y, given) -> float:
+    """Rank correlation of ``x`` and ``y`` with the variables ``given`` (a sequence of
+    arrays) held fixed: the normal scores of ``x`` and ``y`` (ranks mapped through the
+    inverse normal CDF) are fitted by least squares on a cubic in the normal scores of
+    each given variable and their pairwise products, and the residuals correlated. The
+    cubic and the products take out monotone, curved and joint dependences on the given
+    variables that a straight line in their ranks would leave behind. 0 when a residual
+    is constant."""
+    scores = [_normal_scores(v) for v in given]
+    cols = [np.ones(len(x))] + [s**p for s in scores for p in (1, 2, 3)]
+    cols += [a * b for k, a in enumerate(scores) for b in scores[k + 1 :]]
+    design = np.column_stack(cols)
+    res = []
+    for v in (x, y):
+        r = _normal_scores(v)
+        coef, *_ = np.linalg.lstsq(design, r, rcond=None)
+        res.append(r - design @ coef)
+    den = math.sqrt(float(np.sum(res[0] ** 2) * np.sum(res[1] ** 2)))
+    return float(np.sum(res[0] * res[1]) / den) if den > 1e-9 * len(x) else 0.0
+
+
+def sheet_channel(label, sheets: Mapping[str, np.ndarray], kept_mle) -> list[dict[str, Any]]:
+    """Rows :data:`SHEET_COLUMNS` for stacks with labels ``label``, the stack-mean κ of
+    their images' negative sheets ``sheets`` (``{"subhalos": ..., "los": ...}``) and the
+    γ_MLE of their sheets-kept re-renders ``kept_mle``: does each sheet follow the label,
+    does the kept-sheet γ_MLE follow each sheet, and does anything of the label remain in
+    it with the sheets held fixed (:func:`partial_spearman`, bound 2/√(n − 1 − m) for the
+    m regressors of the fit)?
+    ``within`` says whether |ρ| is inside the bound of no correlation. A sheet that is
+    zero everywhere (a scene without that population) is left out."""
+    from scipy.stats import spearmanr
+
+    label, mle = np.asarray(label, float), np.asarray(kept_mle, float)
+    sheets = {f"sheet_kappa_{k}": np.asarray(v, float) for k, v in sheets.items() if np.ptp(v)}
+    n = label.size
+    rows = []
+
+    def row(quantity, against, given, rho, p, bound):
+        return dict(quantity=quantity, against=against, given=given, n_stacks=n, rho=rho) | dict(
+            p=p, bound=bound, within=bool(abs(rho) <= bound)
+        )
+
+    pairs = [(k, "label", v, label) for k, v in sheets.items()]
+    pairs += [("sheets_kept_mle", k, mle, v) for k, v in sheets.items()]
+    for quantity, against, x, y in pairs:
+        rho, p = (0.0, 1.0) if np.ptp(x) == 0 or np.ptp(y) == 0 else spearmanr(x, y)
+        rows.append(row(quantity, against, "", float(rho), float(p), 2.0 / math.sqrt(n - 1)))
+    k = len(sheets)
+    dof = n - 1 - 3 * k - k * (k - 1) // 2
+    if sheets and dof >= 1:  # fewer stacks than the fit's regressors: no partial test
+        rho = partial_spearman(mle, label, list(sheets.values()))
+        bound = 2.0 / math.sqrt(dof)
+        rows.append(row("sheets_kept_mle", "label", " + ".join(sheets), rho, math.nan, bound))
+    return rows
 
 
 def label_trend(labels, mle) -> dict[str, float]:
@@ -244,6 +314,7 @@ def halo_free_null(
     shard_paths: Sequence,
     out_csv,
     bias_csv,
+    sheet_csv=None,
     *,
     n_sets: int,
 ):
@@ -251,7 +322,9 @@ def halo_free_null(
     ``nsub_bias.csv`` (:data:`BIAS_COLUMNS`) of the first ``n_sets`` sets: the profiles
     files of the stored test images (``original``), of the same shards halo-free
     (``variants``: variant -> files, :func:`halo_free_shard`), and the shards themselves
-    (their N_sub), all in the same shard order."""
+    (their N_sub), all in the same shard order. ``sheet_csv``: also
+    ``sheet_channel.csv`` (:func:`sheet_channel`), with the sheet κ of every tested image
+    computed from the shards (:func:`subslope.simulation.rerender.sheet_kappas`)."""
     import pandas as pd
 
     from subslope.io.ratio_profiles import read_profiles
@@ -276,7 +349,38 @@ def halo_free_null(
     bias = pd.DataFrame(nsub_bias(n_sub[keep], label, single), columns=BIAS_COLUMNS)
     write_text(bias_csv, bias.to_csv(index=False))
     log.info("halo-free null test:\n%s\nbias by N_sub:\n%s", table, bias)
+    if sheet_csv is not None:
+        kappas = _sheet_kappas(shard_paths, keep)
+        ids, inv = np.unique(set_id, return_inverse=True)
+        kept = read_profiles(variants["sheets_kept"])
+        sel = _first_sets(kept, n_sets, "sheets_kept")
+        stack_mle = np.atleast_1d(intervals.mle(intervals.stack(kept["log_ratio"][sel], inv), g))
+        first = np.array([np.flatnonzero(inv == k)[0] for k in range(ids.size)])
+        stack_kappa = {k: np.bincount(inv, weights=v) / np.bincount(inv) for k, v in kappas.items()}
+        sheet = pd.DataFrame(
+            sheet_channel(label[first], stack_kappa, stack_mle), columns=SHEET_COLUMNS
+        )
+        write_text(sheet_csv, sheet.to_csv(index=False))
+        log.info("the kept sheets as a channel of gamma:\n%s", sheet)
     return table, bias
+
+
+def _sheet_kappas(shard_paths: Sequence, keep: np.ndarray) -> dict[str, np.ndarray]:
+    """The subhalo and line-of-sight sheet κ of the images ``keep`` selects (a mask over
+    the shards' images in shard order)."""
+    from subslope.simulation.rerender import sheet_kappas
+
+    out: dict[str, list] = {"subhalos": [], "los": []}
+    start = 0
+    for path in shard_paths:
+        with open_shard(path) as s:
+            n = len(s)
+        rows = np.flatnonzero(keep[start : start + n])
+        start += n
+        if rows.size:
+            for k, v in sheet_kappas(path, rows).items():
+                out[k].append(v)
+    return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
 
 
 def _shard_column(path, key: str) -> np.ndarray:

@@ -13,9 +13,9 @@ import numpy as np
 from subslope.io.atomic import write_csv, write_text
 from subslope.stages.calibrate import COVERAGE_COLUMNS
 from subslope.stages.cdm_grid import cdm_band
-from subslope.stages.halo_free import BIAS_COLUMNS, HALO_FREE_COLUMNS
+from subslope.stages.halo_free import BIAS_COLUMNS, HALO_FREE_COLUMNS, SHEET_COLUMNS
 from subslope.stages.null_tests import NULL_COLUMNS
-from subslope.stats.calibration import overconfident
+from subslope.stats.calibration import coverage_sigma, overconfident
 
 __all__ = ["SUMMARY_SECTIONS", "read_benchmarks", "write_summary"]
 
@@ -205,9 +205,42 @@ def _halo_free_section(folder: Path, halo_free_csv, bias_csv) -> list[str]:
         "needs |ρ| ≤ 2/√(n − 1) for single images and stacks and a stack slope within "
         f"2 SE of 0. The test {verdict}\n",
         _md_table(table.to_dict("records"), list(HALO_FREE_COLUMNS)),
+        *_sheet_lines(folder, Path(halo_free_csv).with_name("sheet_channel.csv")),
         "\nBias γ_MLE − γ of the single original images in bins of N_sub:\n",
         _md_table(bias.to_dict("records"), list(BIAS_COLUMNS)),
     ]
+
+
+def _sheet_lines(folder: Path, sheet_csv: Path) -> list[str]:
+    """How the kept sheets carry γ (``sheet_channel.csv`` of rule halo_free_null)."""
+    import pandas as pd
+
+    if not sheet_csv.is_file():
+        return []
+    sheet = pd.read_csv(sheet_csv, keep_default_na=False)
+    write_text(folder / "sheet_channel.csv", sheet.to_csv(index=False))
+    rows = sheet.to_dict("records")
+    follow = [r for r in rows if r["against"] == "label" and not r["given"]]
+    rest = [r for r in rows if r["given"]]
+    if not rest:
+        return []
+    rest = rest[0]
+    inside = str(rest["within"]).lower() == "true"
+    text = (
+        "\nA sheet is minus its members' mean κ, so it follows γ: "
+        + "; ".join(f"{r['quantity']} against the label ρ = {_fmt(r['rho'])}" for r in follow)
+        + f". With {rest['given']} held fixed, the sheets-kept stack γ_MLE against the "
+        f"label has partial ρ = {_fmt(rest['rho'])} (bound ±{_fmt(rest['bound'])}): "
+    )
+    text += (
+        "nothing of the label is left once the sheets' amplitudes are known, so what the "
+        "kept sheets carry is their amplitude, a function of the members' γ that in a "
+        "whole image the members' own mean κ cancels.\n"
+        if inside
+        else "the label still reaches the kept-sheet images beyond the sheets' amplitudes "
+        "(their centres, or the placement).\n"
+    )
+    return [text, _md_table(rows, list(SHEET_COLUMNS))]
 
 
 def _domain_section(domain_csv) -> list[str]:
@@ -273,9 +306,12 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
         return ["Stage `calibrate` not run.\n"]
     table = pd.read_csv(calibration_csv)
     write_text(folder / "coverage.csv", table.to_csv(index=False))
-    if "overconfident" not in table:  # a table of an older run
+    if "coverage_sigma" not in table:  # a table of an older run
         level = table["level"] if "level" in table else 0.68
-        table["overconfident"] = overconfident(table["coverage"], table["coverage_err"], level)
+        table["coverage_sigma"] = coverage_sigma(
+            level, table["n_stacks"] - table["n_heldout"], table["n_heldout"]
+        )
+        table["overconfident"] = overconfident(table["coverage"], table["coverage_sigma"], level)
     flagged = [int(n) for n in table.loc[table["overconfident"].astype(bool), "n_images"]]
     warning = (
         f"**Over-confident at N = {', '.join(map(str, flagged))}**: held-out coverage more "
@@ -285,7 +321,9 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
     )
     return [
         "Held-out coverage of the 68% intervals with the calibrated threshold τ_N "
-        "(and with Wilks' χ²₁ threshold); errors from the number of held-out stacks:\n",
+        "(and with Wilks' χ²₁ threshold). `coverage_err` is the binomial error of the "
+        "held-out stacks alone; `coverage_sigma` adds the scatter of the threshold set by "
+        "the calibration stacks, and is the σ of the 2σ test:\n",
         _md_table(
             table.to_dict("records"),
             [
@@ -295,6 +333,7 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
                 "tau_exact",
                 "coverage",
                 "coverage_err",
+                "coverage_sigma",
                 "coverage_wilks",
                 "n_heldout",
                 "overconfident",

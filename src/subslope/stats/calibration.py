@@ -33,6 +33,7 @@ __all__ = [
     "Stacks",
     "calibration_table",
     "coverage",
+    "coverage_sigma",
     "expected_coverage",
     "STACK_MODES",
     "make_stacks",
@@ -292,9 +293,29 @@ def coverage(
     return p, se, (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def overconfident(coverage, coverage_err, level):
-    """Held-out coverage more than 2σ (its binomial error) below the credibility level."""
-    return np.asarray(coverage) < np.asarray(level) - 2 * np.asarray(coverage_err)
+def coverage_sigma(level, n_calibration, n_heldout):
+    """Standard deviation of the held-out coverage of a split-conformal threshold when the
+    estimator's calibration is exact.
+
+    Two independent samples make it scatter: the threshold, set by ``n_calibration``
+    stacks, covers a fraction ``F(τ)`` of new stacks that is Beta-distributed with
+    variance ``α(1−α)/(n_calibration + 2)`` (``α`` the level; the conformal rank
+    statistic), and the ``n_heldout`` stacks that measure it add the binomial
+    ``α(1−α)/n_heldout``. Testing the held-out coverage against the level with the
+    binomial error alone ignores the first term, which is as large as the second for an
+    even split.
+    """
+    lv = np.asarray(level, dtype=np.float64)
+    n_c = np.asarray(n_calibration, dtype=np.float64)
+    n_h = np.asarray(n_heldout, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(lv * (1 - lv) * (1 / n_h + 1 / (n_c + 2)))
+
+
+def overconfident(coverage, sigma, level):
+    """Held-out coverage more than 2σ below the credibility level; ``σ`` the scatter of
+    the held-out coverage (:func:`coverage_sigma`)."""
+    return np.asarray(coverage) < np.asarray(level) - 2 * np.asarray(sigma)
 
 
 def _levels(levels) -> np.ndarray:
