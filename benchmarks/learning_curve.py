@@ -309,6 +309,7 @@ def figure(rows: list[dict], path: Path) -> dict:
     """Validation loss and ρ against n per (curve, transform, augmentation), with the ρ
     trends; returns the trends by ``curve/inputs[/augment]``."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -327,6 +328,7 @@ def figure(rows: list[dict], path: Path) -> dict:
     ax_l.axhline(math.log(2), color="k", lw=0.8, ls=":")
     for ax, lab in ((ax_l, "best validation loss"), (ax_r, "Spearman ρ, 13-stacks")):
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("training images n")
         ax.set_ylabel(lab)
     ax_r.legend(fontsize=7)
