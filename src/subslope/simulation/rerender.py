@@ -21,7 +21,14 @@ from subslope.simulation.shard import _settings_from_json
 from subslope.simulation.sources import catalog_at, pixelated_sources, place_source
 from subslope.simulation.subhalos import subhalo_population
 
-__all__ = ["stored_inputs", "rerender", "smooth_models", "halo_free_images", "sheet_kappas"]
+__all__ = [
+    "stored_inputs",
+    "rerender",
+    "smooth_models",
+    "halo_free_images",
+    "sheet_kappas",
+    "stored_populations",
+]
 
 
 def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) -> dict[str, Any]:
@@ -64,18 +71,7 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
             stamps.append(sb)
             pixs.append(s["pixel_scale"][i])
         src = pixelated_sources(stamps, pixs, a["source_pad_shape"], settings)
-    subs = None
-    if a["subhalo_profile"] != "none":
-        drawn = shard.ragged("subhalos", idx)
-        counts = drawn.pop("counts")
-        subs = subhalo_population(a["subhalo_profile"], counts, drawn, macro)
-    lpop = None
-    if a["los_profile"] != "none":
-        stored_los = shard.ragged("los", idx)
-        lpop = LosPopulation(
-            profile=a["los_profile"],
-            **{k: v if k == "counts" else v.astype(np.float64) for k, v in stored_los.items()},
-        )
+    subs, lpop = stored_populations(shard, idx, macro)
     psf = torch.as_tensor(shard.psf, dtype=settings.dtype, device=settings.device)
     inst = build_instrument(cfg)
     return {
@@ -92,6 +88,25 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
             "los": a.get("sheet_centre_los", "origin"),
         },
     }
+
+
+def stored_populations(shard: _shards.Shard, idx: np.ndarray, macro):
+    """``(subhalos, los)`` of the images ``idx`` of an open shard, rebuilt from their
+    stored members (``macro``: the images' stored parameters); None for a population the
+    scene does not have."""
+    a = shard.attrs
+    subs = lpop = None
+    if a["subhalo_profile"] != "none":
+        drawn = shard.ragged("subhalos", idx)
+        counts = drawn.pop("counts")
+        subs = subhalo_population(a["subhalo_profile"], counts, drawn, macro)
+    if a["los_profile"] != "none":
+        stored_los = shard.ragged("los", idx)
+        lpop = LosPopulation(
+            profile=a["los_profile"],
+            **{k: v if k == "counts" else v.astype(np.float64) for k, v in stored_los.items()},
+        )
+    return subs, lpop
 
 
 def rerender(
@@ -195,23 +210,13 @@ def sheet_kappas(
     from subslope.physics.grid import pixel_grid
 
     idx = np.atleast_1d(np.asarray(indices, dtype=np.int64))
-    pops = {}
     with _shards.open_shard(shard_path) as shard:
-        a = shard.attrs
         npix = int(shard.images.shape[-1])
-        pixel = float(a["config"]["instrument"]["pixel_scale"])
+        pixel = float(shard.attrs["config"]["instrument"]["pixel_scale"])
         idx = np.atleast_1d(np.arange(len(shard))[idx])
         macro = {k: v[idx] for k, v in shard.params.items() if k != "noise_seed"}
-        if a["subhalo_profile"] != "none":
-            drawn = shard.ragged("subhalos", idx)
-            counts = drawn.pop("counts")
-            pops["subhalos"] = subhalo_population(a["subhalo_profile"], counts, drawn, macro)
-        if a["los_profile"] != "none":
-            stored = shard.ragged("los", idx)
-            pops["los"] = LosPopulation(
-                profile=a["los_profile"],
-                **{k: v if k == "counts" else v.astype(np.float64) for k, v in stored.items()},
-            )
+        subs, lpop = stored_populations(shard, idx, macro)
+    pops = {k: v for k, v in (("subhalos", subs), ("los", lpop)) if v is not None}
     x, y = pixel_grid(npix, pixel, dtype=torch.float64)
     start = ((npix - 1) % stride) // 2  # the subgrid as centred as the stride allows
     x = x[start::stride, start::stride].reshape(1, -1)

@@ -331,18 +331,21 @@ def halo_free_null(
 
     orig = read_profiles(original)
     keep = _first_sets(orig, n_sets, "original")
-    n_sub = np.concatenate([_shard_column(p, "n_sub") for p in shard_paths])
+    per_shard = [_shard_column(p, "n_sub") for p in shard_paths]
+    n_sub = np.concatenate(per_shard)
     if n_sub.size != keep.size:
         raise ValueError(f"the test shards hold {n_sub.size} images, their profiles {keep.size}")
     g = orig["gammas"]
     label, set_id = orig["gamma_true"][keep], orig["set_id"][keep]
     rows = [variant_row("original", g, orig["log_ratio"][keep], label, set_id)]
+    tested = {}
     for variant in VARIANTS[1:]:
         prof = read_profiles(variants[variant])
         sel = _first_sets(prof, n_sets, variant)
         if not np.array_equal(prof["gamma_true"][sel], label):
             raise ValueError(f"{variant}: the halo-free profiles are not of the original images")
-        rows.append(variant_row(variant, g, prof["log_ratio"][sel], label, set_id))
+        tested[variant] = prof["log_ratio"][sel]
+        rows.append(variant_row(variant, g, tested[variant], label, set_id))
     table = pd.DataFrame(rows, columns=HALO_FREE_COLUMNS)
     write_text(out_csv, table.to_csv(index=False))
     single = np.atleast_1d(intervals.mle(orig["log_ratio"][keep], g))
@@ -350,11 +353,9 @@ def halo_free_null(
     write_text(bias_csv, bias.to_csv(index=False))
     log.info("halo-free null test:\n%s\nbias by N_sub:\n%s", table, bias)
     if sheet_csv is not None:
-        kappas = _sheet_kappas(shard_paths, keep)
+        kappas = _sheet_kappas(shard_paths, [c.size for c in per_shard], keep)
         ids, inv = np.unique(set_id, return_inverse=True)
-        kept = read_profiles(variants["sheets_kept"])
-        sel = _first_sets(kept, n_sets, "sheets_kept")
-        stack_mle = np.atleast_1d(intervals.mle(intervals.stack(kept["log_ratio"][sel], inv), g))
+        stack_mle = np.atleast_1d(intervals.mle(intervals.stack(tested["sheets_kept"], inv), g))
         first = np.array([np.flatnonzero(inv == k)[0] for k in range(ids.size)])
         stack_kappa = {k: np.bincount(inv, weights=v) / np.bincount(inv) for k, v in kappas.items()}
         sheet = pd.DataFrame(
@@ -365,16 +366,16 @@ def halo_free_null(
     return table, bias
 
 
-def _sheet_kappas(shard_paths: Sequence, keep: np.ndarray) -> dict[str, np.ndarray]:
+def _sheet_kappas(
+    shard_paths: Sequence, sizes: Sequence[int], keep: np.ndarray
+) -> dict[str, np.ndarray]:
     """The subhalo and line-of-sight sheet κ of the images ``keep`` selects (a mask over
-    the shards' images in shard order)."""
+    the images of shards of ``sizes`` images, in shard order)."""
     from subslope.simulation.rerender import sheet_kappas
 
     out: dict[str, list] = {"subhalos": [], "los": []}
     start = 0
-    for path in shard_paths:
-        with open_shard(path) as s:
-            n = len(s)
+    for path, n in zip(shard_paths, sizes, strict=True):
         rows = np.flatnonzero(keep[start : start + n])
         start += n
         if rows.size:
