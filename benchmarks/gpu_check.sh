@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # One prepared check on a machine with a CUDA GPU (<= 8 minutes on one H100/H200):
 #   1. the `gpu`-marked tests (pytest -m gpu);
-#   2. render throughput at the mean training scene (N_sub = 1500 + LoS) for batch sizes
-#      64-1024, and one estimator training step (ResNet-50, batch 1000, fp32 and AMP)
+#   2. render throughput of the batched renderer (batching 'auto', batch_images = the
+#      batch) at the mean training scene (N_sub = 1500 + LoS) for batch sizes 64-1024,
+#      and one estimator training step (ResNet-50, batch 1000, fp32 and AMP)
 #      (benchmarks/gpu_throughput.py);
 #   3. training images/s from shards and from the live stream (training.data: stream),
 #      rendering on the GPU in the training process and in 2 spawned workers
@@ -38,7 +39,7 @@ export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
   timeout 200 "$py" benchmarks/gpu_throughput.py --device cuda --out "$out/gpu_throughput.md"
   echo "== stream"
   timeout 120 "$py" benchmarks/stream_throughput.py --device cuda --batch 256 --batches 4 \
-    --repeats 2 --workers 0 2 --data "${SUBSLOPE_DATA_MIRROR:-../shared/data}" \
+    --batch-images 256 --repeats 2 --workers 0 2 --data "${SUBSLOPE_DATA_MIRROR:-../shared/data}" \
     --out "$out/stream_throughput.md"
   date
 } 2>&1 | tee "$out/gpu_check.log"

@@ -56,10 +56,11 @@ def _train_step(loss_fn, opt, g: torch.Tensor, x: torch.Tensor, amp: bool) -> No
 
 
 def render_rows(device: torch.device, batches, repeats: int, compile_mode: str) -> list[dict]:
-    """Images/s of :func:`subslope.render.pipeline.render` per batch size."""
+    """Images/s of :func:`subslope.render.pipeline.render` per batch size: the batched
+    path (batching 'auto') with ``batch_images`` = the batch size."""
     rows = []
-    settings = R.RenderSettings(device=str(device), compile=compile_mode)
     for n in batches:
+        settings = R.RenderSettings(device=str(device), compile=compile_mode, batch_images=n)
         t = time.perf_counter()
         batch = make_scene("train", n_img=n, n_sub=1500, with_los=True, seed=n)
         draw = time.perf_counter() - t

@@ -53,7 +53,7 @@ def _config(args) -> dict:
             "scenes": {"train": {"n_shards": 1, "images_per_shard": args.images}},
             "render": {
                 "compile": args.compile,
-                "batch_size": args.batch,
+                "batch_images": args.batch,
                 "batching": args.batching,
             },
             "shard_cache": None,

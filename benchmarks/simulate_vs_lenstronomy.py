@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import os
 import sys
 import time
@@ -266,11 +267,19 @@ def main() -> None:
     )
     ap.add_argument("--csv", default=None)
     ap.add_argument(
+        "--batch-images",
+        type=int,
+        default=None,
+        help="RenderSettings.batch_images (default: the schema's; 1 = one image at a time)",
+    )
+    ap.add_argument(
         "--breakdown", action="store_true", help="only the stage breakdown at N_sub = 1500 + LoS"
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     settings = R.RenderSettings(device="cpu")
+    if args.batch_images is not None:
+        settings = dataclasses.replace(settings, batch_images=args.batch_images)
     ref_settings = C.reference_settings(settings)
     print(C.machine_info())
     print(f"settings: {settings}")

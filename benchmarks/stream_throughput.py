@@ -54,6 +54,8 @@ def _config(args) -> dict:
             "shard_cache": None,
         },
     }
+    if args.batch_images is not None:
+        over["simulation"]["render"] = {"batch_images": args.batch_images}
     return C.load(args.config, overrides=over, env=False)
 
 
@@ -79,6 +81,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--device", default="auto", help="training (and rendering) device")
+    ap.add_argument("--batch-images", type=int, default=None, help="simulation.render.batch_images")
     ap.add_argument("--out", type=Path, help="also write the table to this file")
     data = Path(os.environ.get("SUBSLOPE_DATA_MIRROR", ROOT / "resources"))
     ap.add_argument("--data", type=Path, default=data)

@@ -234,8 +234,8 @@ def test_defaults_fill_partial_sections():
             "'float32', 'float64'",
         ),
         (
-            {"simulation": {"render": {"batch_size": 0}}},
-            "simulation.render.batch_size",
+            {"simulation": {"render": {"batch_images": 0}}},
+            "simulation.render.batch_images",
             "[1, 4096]",
         ),
         (

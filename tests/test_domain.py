@@ -122,7 +122,7 @@ def test_domain_check_command_writes_the_table_and_figures(tmp_path, data_dir):
         "data": {"resources_dir": str(data_dir), "mirror": str(data_dir)},
         "simulation": {
             **cfg.get("simulation", {}),
-            "render": {"compile": "off", "device": "cpu", "batch_size": 2},
+            "render": {"compile": "off", "device": "cpu", "batch_images": 2},
         },
     }
     path = tmp_path / "cfg.yaml"

@@ -152,13 +152,47 @@ def test_subhalo_sheet_kappa_is_the_renderers_sheet(config, train_shard):
         assert coarse[j] == pytest.approx(kappa[j], rel=0.1)
 
 
-def test_images_do_not_depend_on_batch_size(config, train_shard):
+def stored_units(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a − b| in units of the last stored place (16-bit mantissa) of the larger."""
+    big = np.maximum(np.abs(a), np.abs(b)).astype(np.float64)
+    unit = np.exp2(np.floor(np.log2(np.where(big > 0, big, 1.0))) - 16)
+    return np.abs(a.astype(np.float64) - b) / unit
+
+
+def test_batch_size_changes_images_at_rounding_only(config, train_shard):
     cfg = copy.deepcopy(config)
-    cfg["simulation"]["render"]["batch_size"] = 3
-    ss = simulate.shard_seed_sequence(cfg["seed"], "train", 0)
-    out = simulate.simulate_images(cfg, "train", 3, ss)
-    with shards.open_shard(train_shard) as s:
-        np.testing.assert_array_equal(out["images"], s.images[()])
+    cfg["simulation"]["render"]["batch_images"] = 3
+    out, again = (
+        simulate.simulate_images(
+            cfg, "train", 3, simulate.shard_seed_sequence(cfg["seed"], "train", 0), noise=False
+        )
+        for _ in range(2)
+    )
+    np.testing.assert_array_equal(out["images"], again["images"])  # same batch: same bits
+    clean = np.stack([rerender.rerender(train_shard, i, noise=False) for i in range(3)])
+    assert stored_units(out["images"], clean).max() <= 1.0
+
+
+@pytest.mark.parametrize(
+    "scene", ["train", "validation", "test_epl", "nfw", "tnfw", "null_nosub", "null_nosub_los"]
+)
+def test_rerender_contract(config, scene, tmp_path):
+    """With its batch: the stored image bit for bit; alone: the noise-free image to one
+    unit in the last stored place."""
+    mult = 1.0 if scene in ("nfw", "tnfw") else None
+    path = simulate.simulate_shard(
+        config, scene, 0, tmp_path / "s.h5", multiplier=mult, progress=False
+    )
+    with shards.open_shard(path) as s:
+        stored, n = s.images[()], len(s)
+        assert s.attrs["render_settings"]["batch_images"] == 2 and n > 2
+    for i in range(n):
+        np.testing.assert_array_equal(rerender.rerender(path, i), stored[i])
+        batch = rerender.rerender(path, i, noise=False)
+        alone = rerender.rerender(path, i, noise=False, alone=True)
+        assert stored_units(alone, batch).max() <= 1.0
+    with pytest.raises(ValueError, match="noise=False"):
+        rerender.rerender(path, 0, alone=True)
 
 
 @pytest.mark.parametrize("scene", ["nfw", "tnfw"])

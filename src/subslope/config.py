@@ -465,7 +465,7 @@ BASE_KEY = "base"
 #: Keys of ``simulation.render`` that change where and how fast a shard is made, never
 #: its bits: left out of a shard job's params, of the config a shard records and of its
 #: cache key, so changing one reruns no shard.
-RUN_ONLY_RENDER_KEYS = ("batch_size", "device", "compile_cache")
+RUN_ONLY_RENDER_KEYS = ("device", "compile_cache")
 
 
 def deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:

@@ -14,7 +14,7 @@ Pipeline for a batch of ``B`` systems, one function per step (``docs/simulation.
    Sérsic components whose shapes and centre offsets rotate with ``src_rotation``),
    plus the unlensed Sérsic lens light;
 4. binning of the k×k sub-pixels, × pixel area (e⁻/s per pixel), PSF convolution
-   (:func:`subslope.physics.instrument.convolve`, one image at a time).
+   (:func:`subslope.physics.instrument.convolve`, the batch at once).
 
 Negative sheets: ``κ_sheet = −(1/P) Σ_pixels Σ_members κ_i`` with the member
 convergences taken at the pixel-centre rays *on that plane* (for the main-lens plane of
@@ -35,13 +35,15 @@ near/far split of :mod:`subslope.render.nearfar` (``RenderSettings.population``)
 :mod:`subslope.render.kernels` the compiled kernels, :mod:`subslope.render.settings`
 the knobs.
 
-Determinism: on CPU (``RenderSettings.batching = 'auto'``) the images of a batch are rendered one
-at a time, so image ``i``
-alone == image ``i`` in a batch, bit for bit (all member counts, chunk widths and
-split radii are per image). On other devices images are rendered in sub-batches
-padded to the largest population: there an image alone and in a batch agree to float
-rounding (member sums are compiled reductions whose order may depend on the padded
-width); inactive planes are exact no-ops and the PSF is applied image by image.
+Batches (``RenderSettings.batching = 'auto'``): the images of a render call are
+rendered ``batch_images`` at a time, every step on the whole batch. The line-of-sight
+slices of its images share planes by rank (:func:`subslope.render.planes.slice_ranks`;
+inactive planes are exact no-ops); the subhalo population is one padded pass (one pass
+per image on a CPU with the near/far split, where padding would only add pairs). The
+same batch gives the same bits; an image alone and in a batch agree to float rounding
+(element-wise float32 kernels take a vectorised or a scalar path depending on where an
+element falls in the tensor, and member sums are compiled reductions whose order may
+depend on the padded width). ``batching = 'per_image'`` renders one image at a time.
 """
 
 from __future__ import annotations
@@ -68,7 +70,6 @@ from subslope.physics.profiles.epl import theta_e_to_amp
 from subslope.physics.profiles.multipole import multipole_deflections
 from subslope.physics.profiles.shear import shear_deflection
 from subslope.physics.raytrace import Plane, multi_plane_ray_shoot
-from subslope.ragged import pack_ragged
 from subslope.render.counters import count_step
 from subslope.render.inputs import (
     GROUPS,
@@ -78,15 +79,16 @@ from subslope.render.inputs import (
     sheet_centre_pair,
 )
 from subslope.render.kernels import Kernels, kernels_for
+from subslope.render.planes import flat_members, los_planes
 from subslope.render.populations import (
     PROFILE_KEYS,
     Geometry,
     Population,
-    flat_table,
     main_lens_deflection,
     pack_population,
     population_pass,
     select_systems,
+    use_split,
 )
 from subslope.render.settings import PixelatedSources, RenderSettings, chunk_width
 from subslope.render.tiles import GridBlock
@@ -151,35 +153,51 @@ class _Batch:
         return np.asarray(self.macro[key], dtype=np.float64)[self.idx]
 
 
-def _flat_members(pop, sel: np.ndarray) -> dict[str, np.ndarray | None]:
-    """The parameters of members ``sel`` of a ragged population, flat."""
-    return {
-        kk: (None if getattr(pop, kk, None) is None else np.asarray(getattr(pop, kk))[sel])
-        for kk in PROFILE_KEYS[pop.profile]
-    }
-
-
-def _subhalo_population(batch: _Batch, subhalos) -> Population | None:
-    """The lens-plane subhalos of the sub-batch as a padded population (None if empty)."""
+def _subhalo_populations(batch: _Batch, subhalos) -> list[tuple[slice, Population]]:
+    """The lens-plane subhalos of the sub-batch: ``(images, population)`` pairs, empty
+    when there are none. One padded population for the sub-batch, except with batching
+    'auto' on a CPU where the near/far split applies: there one population per image,
+    since padding every image to the largest member count would add pairs (N_sub is
+    drawn per image) and a CPU gains nothing from evaluating the pairs in one call."""
     if subhalos is None:
-        return None
+        return []
     counts, sel = select_systems(subhalos.counts, batch.idx)
     if counts.sum() == 0:
-        return None
+        return []
     s = batch.settings
-    return pack_population(
-        subhalos.profile,
-        _flat_members(subhalos, sel),
-        counts,
-        s.n_terms,
-        s.dtype,
-        batch.device,
-        batch.sheet[0],
-        batch.members,
-    )
+    flat = flat_members(subhalos, sel)
+
+    def pack(c, members):
+        return pack_population(
+            subhalos.profile,
+            members,
+            c,
+            s.n_terms,
+            s.dtype,
+            batch.device,
+            batch.sheet[0],
+            batch.members,
+        )
+
+    whole = pack(counts, flat)
+    padded = batch.device.type != "cpu" or s.batching == "sub_batch"
+    if batch.size == 1 or padded or not use_split(whole, s, batch.geometry):
+        return [(slice(0, batch.size), whole)]
+    off = np.concatenate([[0], np.cumsum(counts)])
+    return [
+        (
+            slice(i, i + 1),
+            pack(
+                counts[i : i + 1],
+                {k: None if v is None else v[off[i] : off[i + 1]] for k, v in flat.items()},
+            ),
+        )
+        for i in range(batch.size)
+        if counts[i] > 0
+    ]
 
 
-def _lens_plane(batch: _Batch, sub_pop: Population | None):
+def _lens_plane(batch: _Batch, sub_pops: list[tuple[slice, Population]]):
     """The deflection of the main-lens plane, ``(tx, ty, displaced) -> (ax, ay)``: EPL +
     shear + multipoles + the subhalo population and its sheet."""
     settings, kernels, par = batch.settings, batch.kernels, batch.par
@@ -223,71 +241,25 @@ def _lens_plane(batch: _Batch, sub_pop: Population | None):
                 lens["lens_y"],
             ):
                 ax, ay = ax + mx, ay + my
-        if sub_pop is not None:
+        if sub_pops:
             count_step("subhalos")
             geo = (
                 batch.geometry
                 if displaced
                 else dataclasses.replace(batch.geometry, displaced=False)
             )
-            px, py, _ = population_pass(sub_pop, tx, ty, settings, kernels, n_pix, geo)
+            if len(sub_pops) == 1 and sub_pops[0][0] == slice(0, batch.size):
+                px, py, _ = population_pass(sub_pops[0][1], tx, ty, settings, kernels, n_pix, geo)
+            else:  # one pass per image; images without subhalos add exact zeros
+                px, py = torch.zeros_like(ax), torch.zeros_like(ay)
+                for sl, pop in sub_pops:
+                    px[sl], py[sl], _ = population_pass(
+                        pop, tx[sl], ty[sl], settings, kernels, n_pix, geo
+                    )
             ax, ay = ax + px, ay + py
         return ax, ay
 
     return lens_plane
-
-
-def _los_planes(batch: _Batch, los, lens_plane, zl: np.ndarray, zs: np.ndarray) -> list[Plane]:
-    """The line-of-sight planes in front of and behind the lens plane, with the lens
-    plane between them (an empty list when the sub-batch has no LoS halos)."""
-    if los is None:
-        return []
-    counts, sel = select_systems(los.counts, batch.idx)
-    if counts.sum() == 0:
-        return []
-    settings, device, b = batch.settings, batch.device, batch.size
-    sys_local = np.repeat(np.arange(b), counts)
-    z_h = np.asarray(los.z, dtype=np.float64)[sel]
-    bad = z_h >= zs[sys_local]
-    if np.any(bad):
-        j = int(np.flatnonzero(bad)[0])
-        raise ValueError(
-            f"los.z = {z_h[j]} is not in front of z_source = {zs[sys_local[j]]} "
-            f"of system {int(batch.idx[sys_local[j]])}"
-        )
-    front, back = [], []
-    # one member table for every LoS halo of the sub-batch (plus a zero-amplitude
-    # column for padding); each slice plane gathers its columns
-    table_all = flat_table(
-        los.profile, _flat_members(los, sel), settings.n_terms, settings.dtype, device
-    )
-    n_los = table_all.shape[-1] - 1
-    for zu in np.unique(z_h):
-        on = np.flatnonzero(z_h == zu)
-        c_slice = np.bincount(sys_local[on], minlength=b)
-        cols, _ = pack_ragged(on, counts=c_slice, n_max=max(1, int(c_slice.max())), fill=n_los)
-        pop = Population(
-            los.profile,
-            table_all[:, torch.as_tensor(cols, device=device)].permute(1, 0, 2),
-            c_slice,
-            batch.sheet[1],
-            batch.members,
-        )
-        has = c_slice > 0
-
-        def deflect(tx, ty, pop=pop):
-            count_step("los")
-            ax, ay, _ = population_pass(
-                pop, tx, ty, settings, batch.kernels, batch.grid[2], batch.geometry
-            )
-            return ax, ay
-
-        a_front, a_back = has & (zu < zl), has & (zu >= zl)
-        if a_front.any():
-            front.append(Plane(np.full(b, zu), (deflect,), a_front))
-        if a_back.any():
-            back.append(Plane(np.full(b, zu), (deflect,), a_back))
-    return front + [Plane(zl, (lens_plane,), None)] + back
 
 
 def _trace(batch: _Batch, planes: list[Plane], lens_plane, zs: np.ndarray) -> tuple[Tensor, Tensor]:
@@ -418,13 +390,7 @@ def _observe(
         img = _bin(img, k)
     img = img * (settings.pixel_scale**2)
     count_step("psf")
-    img = torch.cat(
-        [
-            convolve(img[i : i + 1], psf, method=settings.convolution, spectrum=spectrum)
-            for i in range(batch.size)
-        ],
-        0,
-    )
+    img = convolve(img, psf, method=settings.convolution, spectrum=spectrum)
     if not smooth and has_group(batch.macro, "sky"):
         count_step("sky")
         img = img + par("sky_level")[:, :, None]
@@ -441,8 +407,8 @@ def _render_group(
 ) -> Tensor:
     """The images of one sub-batch: trace the rays through the planes, then observe."""
     zl, zs = batch.values("z_lens"), batch.values("z_source")
-    lens_plane = _lens_plane(batch, None if smooth else _subhalo_population(batch, subhalos))
-    planes = [] if smooth else _los_planes(batch, los, lens_plane, zl, zs)
+    lens_plane = _lens_plane(batch, [] if smooth else _subhalo_populations(batch, subhalos))
+    planes = [] if smooth else los_planes(batch, los, lens_plane, zl, zs)
     bx, by = _trace(batch, planes, lens_plane, zs)
     n_ss = (batch.settings.npix * batch.settings.supersample) ** 2
     sb = _source_light(batch, bx[:, :n_ss], by[:, :n_ss], sources)
@@ -480,12 +446,14 @@ def _sub_batches(
     n: int, n_all: int, settings: RenderSettings, device: torch.device, kernels: Kernels
 ) -> list[np.ndarray]:
     """Image indices of each sub-batch (:attr:`RenderSettings.batching`)."""
-    per_image = settings.batching == "per_image" or (
-        settings.batching == "auto" and device.type == "cpu"
-    )
-    if per_image:
+    if settings.batching == "per_image":
         return [np.array([i]) for i in range(n)]
-    bs = max(1, settings.max_elements // (chunk_width(settings, n_all, kernels.compiled) * n_all))
+    if settings.batching == "auto":
+        bs = settings.batch_images
+    else:
+        bs = max(
+            1, settings.max_elements // (chunk_width(settings, n_all, kernels.compiled) * n_all)
+        )
     return [np.arange(s, min(n, s + bs)) for s in range(0, n, bs)]
 
 

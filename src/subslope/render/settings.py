@@ -31,7 +31,7 @@ _INSTRUMENT = schema_defaults("instrument")
 #: Fields of :class:`RenderSettings` that come from the ``instrument`` section.
 INSTRUMENT_FIELDS = ("npix", "pixel_scale", "zero_point")
 #: Keys of ``simulation.render`` that are not render settings (they steer the shard job).
-NOT_RENDER_KEYS = ("batch_size", "compile_cache")
+NOT_RENDER_KEYS = ("compile_cache",)
 
 
 @dataclass(frozen=True)
@@ -65,9 +65,13 @@ class RenderSettings:
     zero_point : AB magnitude of 1 e⁻/s.
     compile : 'auto' (torch.compile the EPL chunk kernel on CPU when a C compiler is
         found, eager on failure), 'on' (same, also off-CPU), 'off' (eager).
-    batching : 'auto' (one image at a time on CPU, which makes an image rendered alone
-        and in a batch bit-identical; sub-batches of ``max_elements`` elsewhere),
-        'per_image' or 'sub_batch' (either, on any device).
+    batch_images : images rendered together by batching 'auto' (and images per batch
+        of a shard job): every per-image step works on the batch.
+    batching : 'auto' (batches of ``batch_images`` images on every device), 'per_image'
+        (one image at a time) or 'sub_batch' (batches sized from ``max_elements``). An
+        image rendered alone and in a batch agree to float rounding, not bit for bit:
+        element-wise float32 kernels take a vectorised or a scalar path depending on
+        where an element falls in the tensor.
     """
 
     npix: int = _INSTRUMENT["npix"]
@@ -89,6 +93,7 @@ class RenderSettings:
     split_tolerance: float = _RENDER["split_tolerance"]
     split_min_members: int = _RENDER["split_min_members"]
     batching: str = _RENDER["batching"]
+    batch_images: int = _RENDER["batch_images"]
 
     @classmethod
     def from_config(
@@ -108,7 +113,14 @@ class RenderSettings:
         return cls(**values)
 
     def __post_init__(self) -> None:
-        for name in ("npix", "supersample", "n_terms", "n_terms_main", "max_elements"):
+        for name in (
+            "npix",
+            "supersample",
+            "n_terms",
+            "n_terms_main",
+            "max_elements",
+            "batch_images",
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"RenderSettings.{name} must be a positive int, got {v!r}")

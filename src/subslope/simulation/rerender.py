@@ -1,7 +1,7 @@
 """Images from a stored shard: the renderer's inputs rebuilt from the stored values only
 (populations at their stored precision, their lens parameters derived as in the
-simulation by :func:`subslope.simulation.subhalos.subhalo_population`), the bit-exact
-rerender of an image, the smooth models that placed its subhalos, and the images with
+simulation by :func:`subslope.simulation.subhalos.subhalo_population`), the rerender of
+an image (bit-exact with its batch), the smooth models that placed its subhalos, and the images with
 their halos removed (null tests)."""
 
 from __future__ import annotations
@@ -110,21 +110,37 @@ def stored_populations(shard: _shards.Shard, idx: np.ndarray, macro):
 
 
 def rerender(
-    shard_path: str | os.PathLike[str], i: int, *, noise: bool = True, cosmos=None
+    shard_path: str | os.PathLike[str],
+    i: int,
+    *,
+    noise: bool = True,
+    cosmos=None,
+    alone: bool = False,
 ) -> np.ndarray:
     """Image ``i`` of a shard re-rendered from its stored parameters (nothing re-sampled).
 
-    With ``noise=True`` the stored noise seed is used: on the same device and dtype the
-    result equals the stored image bit for bit. ``noise=False`` gives the noise-free image.
+    The shard job renders its images in batches of the stored ``batch_images``; by
+    default the image is rendered with the rest of its batch, and on the same device and
+    dtype the result equals the stored image bit for bit. ``alone=True`` renders image
+    ``i`` by itself (``batch_images`` times cheaper), noise-free only: it agrees with
+    the batch's noise-free image to float rounding, i.e. to within one unit in the last
+    stored place (16-bit mantissa) per pixel (``docs/simulation.md``). Noise is not
+    offered alone: the Poisson sampler's rejection loop consumes a data-dependent number
+    of random numbers, so one draw moved by rounding moves every later draw of the image.
+    ``noise=False`` gives the noise-free image at the stored precision.
     """
+    if alone and noise:
+        raise ValueError("rerender(alone=True) gives the noise-free image only: pass noise=False")
     from subslope.render.pipeline import render
 
     with _shards.open_shard(shard_path) as shard:
-        if not 0 <= int(i) < len(shard):
-            raise IndexError(
-                f"image index {i} out of range for {shard_path} with {len(shard)} images"
-            )
-        inp = stored_inputs(shard, [int(i)], cosmos=cosmos)
+        n = len(shard)
+        if not 0 <= int(i) < n:
+            raise IndexError(f"image index {i} out of range for {shard_path} with {n} images")
+        settings = _settings_from_json(shard.attrs["render_settings"])
+        bs = 1 if alone else settings.batch_images
+        lo = int(i) // bs * bs
+        inp = stored_inputs(shard, np.arange(lo, min(lo + bs, n)), cosmos=cosmos)
     clean = render(
         inp["macro"],
         inp["psf"],
@@ -133,9 +149,9 @@ def rerender(
         subhalos=inp["subhalos"],
         los=inp["los"],
         sheet_centre=inp["sheet_centre"],
-    )[0]
+    )[int(i) - lo]
     img = (
-        add_noise(clean, int(inp["noise_seed"][0]), instrument=inp["instrument"])
+        add_noise(clean, int(inp["noise_seed"][int(i) - lo]), instrument=inp["instrument"])
         if noise
         else clean
     )

@@ -6,13 +6,13 @@
    [, multiplier index]))`` per shard (scene id: first 8 bytes of the SHA-256 of the
    scene name), spawned into five independent streams: macro, sources, subhalos, LoS,
    noise. Subhalos and LoS get one child stream *per image* and the noise one torch
-   seed per image (stored), so images do not depend on the batch size.
+   seed per image (stored), so the draws do not depend on the batch size.
 2. **Macro parameters** of all images (:func:`subslope.simulation.macro.sample_macro`).
 3. **Sources**: a COSMOS galaxy of the scene's split per image (uniform), moved to the
    image's z_source (:func:`subslope.io.cosmos.place_at_redshift`), optionally
    renormalised to a drawn magnitude, rotated by the macro ``src_rotation``; or the
    parametric Sérsic source of the macro draw.
-4. **Per batch** of ``simulation.render.batch_size`` images: the smooth model
+4. **Per batch** of ``simulation.render.batch_images`` images: the smooth model
    (:func:`subslope.render.pipeline.render_smooth`) when subhalos go on the arc; subhalos
    (:func:`subslope.simulation.subhalos.sample_subhalos`); LoS halos
    (:func:`subslope.simulation.los.sample_los_batch` +
@@ -22,8 +22,9 @@
    (:func:`subslope.physics.instrument.add_noise` with the image's seed); the pixels
    rounded to their stored precision.
 
-:func:`rerender` rebuilds image ``i`` of a shard from its *stored* parameters (nothing is
-re-sampled) — bit for bit on the same device and dtype.
+:func:`subslope.simulation.rerender.rerender` rebuilds image ``i`` of a shard from its
+*stored* parameters (nothing is re-sampled): bit for bit with its batch on the same
+device and dtype, to the stored precision alone (``docs/simulation.md``).
 """
 
 from __future__ import annotations
@@ -320,7 +321,7 @@ def simulate_images(
         images,
         timing,
     )
-    _run_batches(job, n, int(config["simulation"]["render"]["batch_size"]), scene, progress)
+    _run_batches(job, n, settings.batch_images, scene, progress)
     params = dict(macro)
     params["noise_seed"] = noise_seed
     comp = sc.components
