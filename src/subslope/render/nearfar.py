@@ -292,7 +292,8 @@ def _far_field(p: _Pass, bx: Tensor, by: Tensor, blk: GridBlock):
     flat_nodes = (nd[:, None] * m + nd[None, :]).reshape(-1)
     xn, yn = bx[:, flat_nodes], by[:, flat_nodes]
     fx = fy = fk = None
-    step_n = max(1, p.max_elements // max(1, flat_nodes.numel()))
+    # members per call: a call holds (b, nodes, members) pairs, b the images of the pass
+    step_n = max(1, p.max_elements // max(1, xn.shape[0] * flat_nodes.numel()))
     for s in range(0, p.n, step_n):
         e = min(p.n, s + step_n)
         px, py, pk = p.far_k(
