@@ -179,10 +179,9 @@ def _subhalo_populations(batch: _Batch, subhalos) -> list[tuple[slice, Populatio
             batch.members,
         )
 
-    whole = pack(counts, flat)
     padded = batch.device.type != "cpu" or s.batching == "sub_batch"
-    if batch.size == 1 or padded or not use_split(whole, s, batch.geometry):
-        return [(slice(0, batch.size), whole)]
+    if batch.size == 1 or padded or not use_split(counts, s, batch.geometry):
+        return [(slice(0, batch.size), pack(counts, flat))]
     off = np.concatenate([[0], np.cumsum(counts)])
     return [
         (

@@ -135,10 +135,12 @@ class Geometry:
     displaced: bool = True
 
 
-def use_split(pop: Population, settings: RenderSettings, geometry: Geometry | None) -> bool:
+def use_split(counts: np.ndarray, settings: RenderSettings, geometry: Geometry | None) -> bool:
+    """Whether a population of these per-image member ``counts`` is summed with the
+    near/far split (``settings.population``)."""
     if geometry is None or settings.population == "direct":
         return False
-    return settings.population == "split" or int(pop.counts.max()) >= settings.split_min_members
+    return settings.population == "split" or int(counts.max()) >= settings.split_min_members
 
 
 def population_pass(
@@ -160,7 +162,7 @@ def population_pass(
     """
     n_all = x.shape[-1]
     centroid = pop.sheet_centre == "mass_centroid"
-    if use_split(pop, settings, geometry):
+    if use_split(pop.counts, settings, geometry):
         count_step("split")
         out = split_pass(
             pop.table,

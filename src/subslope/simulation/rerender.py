@@ -140,7 +140,7 @@ def rerender(
         settings = _settings_from_json(shard.attrs["render_settings"])
         bs = 1 if alone else settings.batch_images
         lo = int(i) // bs * bs
-        inp = stored_inputs(shard, np.arange(lo, min(lo + bs, n)), cosmos=cosmos)
+        inp = stored_inputs(shard, np.arange(lo, min(lo + bs, n)), cosmos=cosmos, settings=settings)
     clean = render(
         inp["macro"],
         inp["psf"],
