@@ -211,6 +211,29 @@ def test_cdm_shards(config, scene, tmp_path):
     np.testing.assert_array_equal(rerender.rerender(path, 1), shards.open_shard(path).images[1])
 
 
+def test_subhalo_free_images_remove_the_subhalos_and_nothing_else(config, tmp_path):
+    """A scene without subhalos re-renders to its stored images bit for bit (same
+    batches); in a CDM scene removing the subhalos changes the images, and keeping the
+    line-of-sight halos tells the re-render from the halo-free one."""
+    empty = simulate.simulate_shard(config, "null_nosub_los", 0, tmp_path / "n.h5", progress=False)
+    with shards.open_shard(empty) as s:
+        stored, n = s.images[()], len(s)
+    np.testing.assert_array_equal(rerender.subhalo_free_images(empty, range(n), chunk=2), stored)
+    path = simulate.simulate_shard(
+        config, "nfw", 0, tmp_path / "c.h5", multiplier=1.0, progress=False
+    )
+    with shards.open_shard(path) as s:
+        stored, n = s.images[()], len(s)
+        has_subhalos = np.asarray(s.subhalos["counts"]) > 0
+    removed = rerender.subhalo_free_images(path, range(n), chunk=2)
+    halo_free = rerender.halo_free_images(path, range(n), keep_sheets=False, chunk=2)
+    assert removed.shape == stored.shape and np.all(np.isfinite(removed))
+    assert has_subhalos.any()
+    for i in np.flatnonzero(has_subhalos):
+        assert stored_units(removed[i], stored[i]).max() > 1.0
+        assert stored_units(removed[i], halo_free[i]).max() > 1.0
+
+
 def test_shard_jobs_and_paths(config):
     full = cfgmod.validate({})
     jobs = plan.shard_jobs(full)

@@ -19,9 +19,11 @@ from subslope.stages.calibrate import (
 )
 from subslope.stages.cdm_grid import cdm_band, measure_cdm_grid
 from subslope.stages.figures import spearman_trend
+from subslope.stages.null_tests import NULL_COLUMNS
 from subslope.stages.plan import derived_seed
 from subslope.stages.summary import SUMMARY_SECTIONS, write_summary
 from subslope.stages.train import checkpoint_key, training_section
+from subslope.stages.visibility import visibility_row
 from subslope.stats import calibration as cal
 from subslope.stats.intervals import gamma_grid
 
@@ -346,6 +348,18 @@ def test_summary_sections(tmp_path):
             for n, cov in ((1, 0.7), (13, 0.45))
         ]
     ).to_csv(tmp_path / "cal.csv", index=False)
+    rows = [
+        visibility_row("nfw", np.linspace(1.2, 2.0, 30) + 0.1, np.linspace(1.2, 2.0, 30)),
+        visibility_row("tnfw", np.full(30, 1.1), np.full(30, 1.1)),
+    ]
+    pd.DataFrame(rows).to_csv(tmp_path / "seen.csv", index=False)
+    null = {c: 0.0 for c in NULL_COLUMNS}
+    pd.DataFrame(
+        [
+            {**null, "scene": "null_nosub", "n_per_stack": 13, "stack_mle_p16": 1.1},
+            {**null, "scene": "null_nosub_los", "n_per_stack": 13, "stack_mle_p16": 2.4},
+        ]
+    ).assign(stack_mle_p84=[1.7, 2.6]).to_csv(tmp_path / "null.csv", index=False)
     bench = tmp_path / "b.tsv"
     bench.write_text("s\th:m:s\tmax_rss\tmax_vms\n12.5\t0:00:12\t321.0\t900\n")
     out = write_summary(
@@ -356,6 +370,8 @@ def test_summary_sections(tmp_path):
         hst_csv=tmp_path / "intervals.csv",
         cdm_csv=tmp_path / "cdm.csv",
         calibration_csv=tmp_path / "cal.csv",
+        visibility_csv=tmp_path / "seen.csv",
+        null_csv=tmp_path / "null.csv",
         trend={"rho": 0.8, "p_value": 1e-5, "n": 20},
         benchmarks={"training": [bench], "hst": [tmp_path / "missing.tsv"]},
     )
@@ -364,6 +380,9 @@ def test_summary_sections(tmp_path):
         assert f"## {section}" in text, section
     assert "abc123" in text and "2.510 (−0.040, +0.050)" in text and "ρ = 0.800" in text
     assert "**Over-confident at N = 13**: held-out coverage more than 2σ below" in text
+    assert "moves the stack γ_MLE of nfw by +0.100 ± 0.000" in text
+    assert "**The subhalos of tnfw are not seen by the estimator**" in text
+    assert "null_nosub outside [1.10, 1.70]; null_nosub_los inside [2.40, 2.60]" in text
     folder = out.parent
     res = pd.read_csv(folder / "hst_result.csv")
     assert res["gamma_mle"].iloc[0] == 2.51 and res["threshold_n"].iloc[0] == 13
@@ -377,6 +396,7 @@ def test_summary_sections(tmp_path):
     empty = write_summary(tmp_path / "e" / "summary.md", run_name="toy", config_hash="h")
     text = empty.read_text()
     assert "Stage `hst` not run" in text and "Stage `calibrate` not run" in text
+    assert pd.read_csv(tmp_path / "e" / "cdm_visibility.csv").empty
     assert list(pd.read_csv(tmp_path / "e" / "hst_result.csv").columns)[:2] == [
         "n_images",
         "gamma_mle",

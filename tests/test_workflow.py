@@ -51,6 +51,7 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         sim[s]["n_shards"] for s in ("validation", "test_epl", *null)
     )
     assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
+    assert stats["subhalo_free_profiles"] == sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"]
     assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
     assert stats["fetch_data"] == 21  # one job per registered data file
     for rule in (
@@ -61,6 +62,7 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         "summarize_coverage",
         "measure_cdm_grid",
         "null_tests",
+        "cdm_visibility",
         "analyze_hst",
         "plot_validation",
         "write_summary",
@@ -221,7 +223,13 @@ STAGE_RULES = {
     "evaluate": {"evaluate_profiles", "evaluate_cdm_profiles"},
     "calibrate": {"calibrate_threshold", "summarize_coverage"},
     "cdm_grid": {"measure_cdm_grid"},
-    "null_tests": {"null_tests", "halo_free_profiles", "halo_free_null"},
+    "null_tests": {
+        "null_tests",
+        "halo_free_profiles",
+        "halo_free_null",
+        "subhalo_free_profiles",
+        "cdm_visibility",
+    },
     "hst": {"analyze_hst"},
     "figures": {"plot_training_curves", "plot_validation"},
     "summary": {"write_summary"},
@@ -249,6 +257,8 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
         "null_tests": 1,
         "halo_free_profiles": 1,
         "halo_free_null": 1,
+        "subhalo_free_profiles": 2,
+        "cdm_visibility": 1,
         "analyze_hst": 1,
         "plot_validation": 1,
         "write_summary": 1,
@@ -281,6 +291,7 @@ def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
             assert rules & set(stats), (stage, stats)
     if off == "cdm_grid":
         assert stats["analyze_hst"] == 1 and "measure_cdm_grid" not in stats
+        assert not {"subhalo_free_profiles", "cdm_visibility"} & set(stats)  # no a = 1 sets
     if off == "calibrate":  # figures still plot the training curves and write the summary
         assert stats["write_summary"] == 1 and "plot_validation" not in stats
 
@@ -303,6 +314,7 @@ SUMMARY_TABLES = (
     "null_tests",
     "halo_free",
     "nsub_bias",
+    "cdm_visibility",
     "trend",
     "stage_runtime",
 )
@@ -410,7 +422,8 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
     assert runtime.loc["simulate", "jobs"] == 9 and runtime.loc["train", "seconds"] > 0
     assert runtime.loc["evaluate", "jobs"] == 6  # validation, test_epl, 2 CDM, 2 null scenes
-    assert runtime.loc["null_tests", "jobs"] == 3  # null_tests, halo_free_profiles, _null
+    # null_tests, halo_free_profiles, halo_free_null, 2 subhalo_free_profiles, cdm_visibility
+    assert runtime.loc["null_tests", "jobs"] == 6
     null = pd.read_csv(results / "null_tests" / "null_tests.csv")
     assert null["scene"].tolist() == ["null_nosub", "null_nosub_los"]
     assert (null["n_stacks"] == 2).all() and (null["n_per_stack"] == 2).all()
@@ -421,6 +434,9 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     bias = pd.read_csv(results / "null_tests" / "nsub_bias.csv")
     assert bias["n_images"].sum() == 8
     assert "Rule `halo_free_null` not run" not in summary
+    seen = pd.read_csv(results / "null_tests" / "cdm_visibility.csv")
+    assert seen["scene"].tolist() == ["nfw", "tnfw"] and (seen["n_sets"] == 2).all()
+    assert seen["visible"].isin([True, False]).all() and "Rule `cdm_visibility`" not in summary
     assert (campaign / "logs" / "train_estimator.log").read_text().count("training done") == 1
 
 

@@ -270,6 +270,14 @@ def benchmark_files():
             for job in HALO_FREE_JOBS
         )
         out["null_tests"].append("results/benchmarks/halo_free_null.tsv")
+    if visibility_on():
+        out.setdefault("null_tests", []).extend(
+            subhalo_free_path(job)
+            .replace("results/null_tests/", "results/benchmarks/", 1)
+            .replace(".h5", ".tsv")
+            for job in VISIBILITY_JOBS
+        )
+        out["null_tests"].append("results/benchmarks/cdm_visibility.tsv")
     if STAGE_ON["hst"]:
         out["hst"] = ["results/benchmarks/analyze_hst.tsv"]
     if STAGE_ON["figures"]:
@@ -302,6 +310,8 @@ def all_targets():
         targets += rules.null_tests.output
     if halo_free_on():
         targets += rules.halo_free_null.output
+    if visibility_on():
+        targets += rules.cdm_visibility.output
     if STAGE_ON["hst"]:
         targets += rules.analyze_hst.output
     if STAGE_ON["figures"]:
@@ -323,6 +333,7 @@ SUMMARY_CSVS = [
     "null_tests",
     "halo_free",
     "nsub_bias",
+    "cdm_visibility",
     "trend",
     "stage_runtime",
 ]
@@ -360,10 +371,37 @@ def halo_free_on():
     return STAGE_ON["null_tests"] and HALO_FREE_N > 0
 
 
+# The CDM visibility check's shards: the a = 1 shards of the CDM scenes (rules
+# subhalo_free_profiles, cdm_visibility).
+VISIBILITY_JOBS = [
+    job
+    for job in SHARD_JOBS
+    if STAGE_ON["null_tests"]
+    and STAGE_ON["cdm_grid"]
+    and config["null_tests"]["cdm_visibility"]
+    and job["scene"] in (CDM["nfw_scene"], CDM["tnfw_scene"])
+    and job["multiplier"] == 1.0
+]
+
+
+def subhalo_free_path(job):
+    """Profiles file of one CDM shard re-rendered without its subhalos."""
+    return job["path"].replace(
+        "results/simulate_shard/", "results/null_tests/subhalo_free/", 1
+    )
+
+
+def visibility_on():
+    """The CDM visibility check runs."""
+    return bool(VISIBILITY_JOBS)
+
+
 def summary_inputs(wildcards):
     inputs = {}
     if null_tests_on():
         inputs["null_tests"] = rules.null_tests.output.csv
+    if visibility_on():
+        inputs["cdm_visibility"] = rules.cdm_visibility.output.csv
     if halo_free_on():
         inputs["halo_free"] = rules.halo_free_null.output.csv
         inputs["nsub_bias"] = rules.halo_free_null.output.bias

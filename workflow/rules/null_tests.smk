@@ -100,3 +100,46 @@ rule halo_free_null:
         n_sets=subslope.config.halo_free_sets(config),
     script:
         "../scripts/halo_free_null.py"
+
+
+# Do the CDM subhalos reach the estimator? The a = 1 shards of the CDM scenes re-rendered
+# without their subhalos (line-of-sight halos, lens, source, light and noise seeds as
+# stored), and each set's stack gamma_MLE compared with its original's
+# (subslope.stages.visibility). Off with null_tests.cdm_visibility: false.
+use rule halo_free_profiles as subhalo_free_profiles with:
+    input:
+        shard="results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5",
+        model=rules.train_estimator.output.model,
+    output:
+        subhalos_removed=update(
+            "results/null_tests/subhalo_free/{scene}/a{multiplier}/shard_{shard}.h5"
+        ),
+    log:
+        "logs/subhalo_free_profiles/{scene}/a{multiplier}/shard_{shard}.log",
+    benchmark:
+        "results/benchmarks/subhalo_free/{scene}/a{multiplier}/shard_{shard}.tsv"
+
+
+rule cdm_visibility:
+    input:
+        original=[profile_path(job) for job in VISIBILITY_JOBS],
+        removed=[subhalo_free_path(job) for job in VISIBILITY_JOBS],
+    output:
+        csv=update("results/null_tests/cdm_visibility.csv"),
+    log:
+        "logs/cdm_visibility.log",
+    benchmark:
+        "results/benchmarks/cdm_visibility.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    params:
+        # [scene, profiles file, re-rendered profiles file] of every a = 1 CDM shard
+        groups=[
+            [job["scene"], profile_path(job), subhalo_free_path(job)]
+            for job in VISIBILITY_JOBS
+        ],
+    script:
+        "../scripts/cdm_visibility.py"

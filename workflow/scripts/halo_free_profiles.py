@@ -1,5 +1,6 @@
-"""Snakemake script of rule halo_free_profiles: ln r on the gamma grid of one test shard's
-images re-rendered without their halos (sheets kept, and removed)."""
+"""Snakemake script of rules halo_free_profiles and subhalo_free_profiles: ln r on the gamma
+grid of one shard's images re-rendered without their halos, one profiles file per named
+output (sheets_kept, sheets_removed, subhalos_removed)."""
 
 import logging
 
@@ -19,7 +20,7 @@ try:
         snakemake.config,
         snakemake.input.model,
         snakemake.input.shard,
-        {v: snakemake.output[v] for v in ("sheets_kept", "sheets_removed")},
+        {v: snakemake.output[v] for v in snakemake.output.keys()},
         gammas=gamma_grid(grid["low"], grid["high"], grid["n"]),
         batch_size=snakemake.params.batch_size,
         device=snakemake.params.device,

@@ -25,6 +25,7 @@ try:
         null_csv=inputs.get("null_tests"),
         halo_free_csv=inputs.get("halo_free"),
         bias_csv=inputs.get("nsub_bias"),
+        visibility_csv=inputs.get("cdm_visibility"),
         trend=trend,
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,

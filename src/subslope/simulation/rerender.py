@@ -26,6 +26,7 @@ __all__ = [
     "rerender",
     "smooth_models",
     "halo_free_images",
+    "subhalo_free_images",
     "sheet_kappas",
     "stored_populations",
 ]
@@ -182,6 +183,40 @@ def halo_free_images(
     (``keep_sheets``, the halos' own deflections dropped) or removed too. Lens, source,
     lens light, sky and the stored noise seeds are the shard's; rounded to the stored
     precision. ``(k, H, W)`` float32, e⁻/s per pixel."""
+    return _rerendered(
+        shard_path,
+        indices,
+        lambda inp: {
+            "subhalos": inp["subhalos"] if keep_sheets else None,
+            "los": inp["los"] if keep_sheets else None,
+            "members": False,
+        },
+        cosmos=cosmos,
+        chunk=chunk,
+    )
+
+
+def subhalo_free_images(
+    shard_path: str | os.PathLike[str], indices, *, cosmos=None, chunk: int = 64
+) -> np.ndarray:
+    """Images ``indices`` of a shard re-rendered from their stored parameters without
+    their subhalos (and the subhalos' negative sheet); the line-of-sight halos, lens,
+    source, lens light, sky and noise seeds as stored. Rounded to the stored precision,
+    ``(k, H, W)`` float32, e⁻/s per pixel. Beside the shard's own images it measures
+    what the subhalos add to an image (:mod:`subslope.stages.visibility`)."""
+    return _rerendered(
+        shard_path,
+        indices,
+        lambda inp: {"subhalos": None, "los": inp["los"], "members": True},
+        cosmos=cosmos,
+        chunk=chunk,
+    )
+
+
+def _rerendered(shard_path, indices, halos, *, cosmos, chunk: int) -> np.ndarray:
+    """Noisy images ``indices`` re-rendered ``chunk`` at a time with the halo arguments
+    ``halos(inputs)`` of :func:`subslope.render.pipeline.render` (subhalos, los, members)
+    and the stored noise seeds, rounded to the stored precision."""
     from subslope.render.pipeline import render
 
     idx = np.atleast_1d(np.asarray(indices, dtype=np.int64))
@@ -195,10 +230,8 @@ def halo_free_images(
                 inp["psf"],
                 inp["settings"],
                 sources=inp["sources"],
-                subhalos=inp["subhalos"] if keep_sheets else None,
-                los=inp["los"] if keep_sheets else None,
                 sheet_centre=inp["sheet_centre"],
-                members=False,
+                **halos(inp),
             )
             for j in range(clean.shape[0]):
                 img = add_noise(clean[j], int(inp["noise_seed"][j]), instrument=inp["instrument"])

@@ -35,6 +35,7 @@ from subslope.stats import intervals
 
 __all__ = [
     "VARIANTS",
+    "RERENDERS",
     "HALO_FREE_COLUMNS",
     "BIAS_COLUMNS",
     "SHEET_COLUMNS",
@@ -50,10 +51,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Shard parameters a halo-free profiles file needs.
-_PARAMS = ("theta_e", "lens_x", "lens_y", "gamma_sub", "set_index")
+_PARAMS = ("theta_e", "lens_x", "lens_y", "gamma_sub", "set_index", "c_multiplier")
 
 #: The images compared: as stored, halos removed with their sheets kept, and removed too.
 VARIANTS = ("original", "sheets_kept", "sheets_removed")
+#: Re-renders :func:`halo_free_shard` makes: the test's two, and the subhalos alone
+#: removed (line-of-sight halos kept; :mod:`subslope.stages.visibility`).
+RERENDERS = (*VARIANTS[1:], "subhalos_removed")
 #: Columns of ``halo_free.csv``, one row per variant.
 HALO_FREE_COLUMNS = (
     "variant",
@@ -242,28 +246,34 @@ def halo_free_shard(
     run_name: str = "",
 ) -> dict[str, Path]:
     """Profiles files (:func:`subslope.io.ratio_profiles.write_profiles`) of every image
-    of one test shard re-rendered halo-free, one per variant of ``out_paths``
-    (``sheets_kept``, ``sheets_removed``). A lens-light-subtracting estimator gets the
-    fitted light of the re-rendered images (the stored fit is of the originals)."""
+    of one shard re-rendered without halos, one per variant of ``out_paths``
+    (:data:`RERENDERS`: ``sheets_kept``, ``sheets_removed``, ``subhalos_removed``). A
+    lens-light-subtracting estimator gets the fitted light of the re-rendered images
+    (the stored fit is of the originals)."""
     from subslope.io.ratio_profiles import write_profiles
     from subslope.nre.evaluate import estimator_profiles
     from subslope.nre.inputs import InputTransform
     from subslope.nre.train import load_estimator
     from subslope.simulation.observing import fitted_light_models
-    from subslope.simulation.rerender import halo_free_images
+    from subslope.simulation.rerender import halo_free_images, subhalo_free_images
 
-    unknown = set(out_paths) - set(VARIANTS[1:])
+    unknown = set(out_paths) - set(RERENDERS)
     if unknown:
-        raise ValueError(f"halo-free variants {sorted(unknown)}: allowed {list(VARIANTS[1:])}")
+        raise ValueError(f"halo-free variants {sorted(unknown)}: allowed {list(RERENDERS)}")
     model, meta = load_estimator(model_path)
     needs_light = InputTransform.from_json(meta.get("inputs")).needs_light
     with open_shard(shard_path) as s:
-        par = {k: np.asarray(s.params[k]) for k in _PARAMS}
+        par = {k: s.params.get(k) for k in _PARAMS}  # CDM shards: no γ; EPL: no multiplier
+        par = {k: None if v is None else np.asarray(v) for k, v in par.items()}
         psf = np.asarray(s.psf)
         n = int(s.images.shape[0])
     written = {}
     for variant, out in out_paths.items():
-        images = halo_free_images(shard_path, np.arange(n), keep_sheets=variant == "sheets_kept")
+        images = (
+            subhalo_free_images(shard_path, np.arange(n))
+            if variant == "subhalos_removed"
+            else halo_free_images(shard_path, np.arange(n), keep_sheets=variant == "sheets_kept")
+        )
         light = fitted_light_models(config, images, par["theta_e"], psf)[1] if needs_light else None
         prof = estimator_profiles(
             model,
@@ -290,6 +300,7 @@ def halo_free_shard(
             gammas=gammas,
             gamma_true=par["gamma_sub"],
             set_index=par["set_index"],
+            c_multiplier=par["c_multiplier"],
             theta_e=par["theta_e"],
             lens_x=par["lens_x"],
             lens_y=par["lens_y"],

@@ -1,0 +1,20 @@
+"""Snakemake script of rule cdm_visibility: the stack gamma_MLE of the a = 1 CDM sets with
+and without their subhalos, set by set."""
+
+import logging
+
+from subslope.logs import log_to_file
+from subslope.stages.visibility import cdm_visibility
+
+log_to_file(snakemake.log[0])
+try:
+    files = {}
+    for scene, original, removed in snakemake.params.groups:
+        pair = files.setdefault(scene, ([], []))
+        pair[0].append(original)
+        pair[1].append(removed)
+    table = cdm_visibility(files, snakemake.output.csv)
+    logging.info("visibility:\n%s", table.to_string())
+except Exception:
+    logging.exception("cdm_visibility failed")
+    raise
