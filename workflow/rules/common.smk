@@ -188,6 +188,12 @@ def eval_scenes():
     return [s for s in dict.fromkeys(scenes) if s in simulated]
 
 
+def shard_priority(wildcards):
+    """Scheduling priority of a shard job: 1 for the training and validation shards
+    (training needs them all before it starts), 0 for the others."""
+    return 1 if wildcards.scene in ("train", "validation") else 0
+
+
 def profile_path(job):
     """Profiles file of one shard job (mirrors the shard path)."""
     return job["path"].replace(

@@ -15,6 +15,9 @@ rule simulate_shard:
         "logs/simulate_shard/{scene}/shard_{shard}.log",
     benchmark:
         "results/benchmarks/simulate_shard/{scene}/shard_{shard}.tsv"
+    # The shards training waits for first: training then runs on one core while the
+    # other simulates the evaluation scenes (the campaign's critical path).
+    priority: shard_priority
     group:
         "simulate"
     conda:
