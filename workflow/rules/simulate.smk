@@ -53,6 +53,7 @@ rule compute_whitening:
         "logs/compute_whitening.log",
     benchmark:
         "results/benchmarks/compute_whitening.tsv"
+    priority: 1
     conda:
         "../envs/subslope.yaml"
     threads: 1

@@ -35,6 +35,9 @@ rule train_estimator:
         "logs/train_estimator.log",
     benchmark:
         "results/benchmarks/train_estimator.tsv"
+    # Ahead of the remaining shard jobs as soon as its inputs exist: training is the
+    # campaign's longest job, the evaluation scenes are simulated beside it.
+    priority: 1
     conda:
         "../envs/subslope.yaml"
     threads: config["training"]["threads"]
