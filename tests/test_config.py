@@ -33,6 +33,7 @@ SHIPPED_DEVIATIONS = {
     ("training", "num_workers"),
     ("training", "checkpoint_every"),
     ("training", "min_delta"),
+    ("training", "max_epochs"),
     ("training", "inputs"),
     ("training", "augment"),
     ("null_tests", "scenes"),
