@@ -305,7 +305,7 @@ def _cdm_section(
     columns = ["scene", "median", "p16", "p84", "n_sets"]
     if not cdm_csv:
         write_csv(folder / "cdm_prediction.csv", [], columns)
-        write_csv(folder / "cdm_visibility.csv", [], VISIBILITY_COLUMNS)
+        _visibility_lines(folder, None)  # its header-only CSV: no a = 1 sets to check
         return ["Stage `cdm_grid` not run.\n"]
     cdm = pd.read_csv(cdm_csv)
     rows = []
