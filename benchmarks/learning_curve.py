@@ -96,16 +96,26 @@ def _shard_task(args) -> tuple[str, float]:
             else:
                 Path(dst).unlink(missing_ok=True)
                 os.symlink(Path(source).resolve(), dst)
-            tsv = Path(source).parents[2] / "benchmarks" / "simulate_shard" / scene
-            job = tsv / f"shard_{index}.tsv"
-            before = (
-                float(next(csv.DictReader(open(job), delimiter="\t"))["s"]) if job.exists() else 0.0
-            )
+            before = _simulation_seconds(source, scene, index)
         else:
             simulate_shard(config, scene, index, dst, overwrite=True)
             before = 0.0
         seconds.write_text(f"{time.perf_counter() - t + before:.3f}\n")
     return dst, float(seconds.read_text())
+
+
+def _simulation_seconds(source: str, scene: str, index: int) -> float:
+    """What simulating ``source`` cost: its ``.seconds`` file when an earlier curve made
+    it, else its campaign job's benchmark file (``results/benchmarks/simulate_shard``),
+    else 0. A linked shard is timed where it really lives."""
+    own = Path(source + ".seconds")
+    if own.exists():
+        return float(own.read_text())
+    real = Path(source).resolve()
+    job = real.parents[2] / "benchmarks" / "simulate_shard" / scene / f"shard_{index}.tsv"
+    if job.exists():
+        return float(next(csv.DictReader(open(job), delimiter="\t"))["s"])
+    return 0.0
 
 
 def shard_tasks(

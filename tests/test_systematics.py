@@ -18,7 +18,6 @@ from conftest import REPO_ROOT, shared_data_dir
 
 from subslope import config as C
 from subslope.io.shard_cache import CODE_PARTS, cached_path, take_from_cache
-from subslope.render.kernels import use_compile_cache
 from subslope.stages.plan import plan_problems, shard_job_config
 from subslope.stages.simulate import shard_cache_key
 from subslope.stages.systematics import (
@@ -139,21 +138,6 @@ def test_the_cache_key_follows_the_images_and_not_the_shard_count():
         other = C.deep_merge(config, {"simulation": {"render": run_only}})
         assert shard_job_config(other, "test_epl") == shard_job_config(config, "test_epl")
         assert shard_cache_key(shard_job_config(other, "test_epl"), "test_epl", 0) == key
-
-
-def test_the_compile_cache_is_set_once_and_the_environment_wins(tmp_path, monkeypatch):
-    for name in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR"):
-        monkeypatch.delenv(name, raising=False)
-    env = use_compile_cache(tmp_path / "cc")
-    assert env == {
-        "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cc"),
-        "TRITON_CACHE_DIR": str(tmp_path / "cc" / "triton"),
-    }
-    assert (tmp_path / "cc").is_dir()
-    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", "/mine")
-    monkeypatch.delenv("TRITON_CACHE_DIR")
-    assert use_compile_cache(tmp_path / "other")["TORCHINDUCTOR_CACHE_DIR"] == "/mine"
-    assert use_compile_cache(None)["TORCHINDUCTOR_CACHE_DIR"] == "/mine"
 
 
 def test_the_code_parts_of_the_key_exist():

@@ -8,12 +8,14 @@ import torch
 
 from subslope.devices import pick_device
 from subslope.logs import log_to_file
+from subslope.render.kernels import use_compile_cache
 from subslope.stages.halo_free import halo_free_shard
 from subslope.stats.intervals import gamma_grid
 
 log_to_file(snakemake.log[0])
 try:
     pick_device(snakemake.params.device, key="inference.device")
+    use_compile_cache(snakemake.config["simulation"]["render"].get("compile_cache"))
     torch.set_num_threads(snakemake.threads)
     grid = snakemake.params.gamma_grid
     written = halo_free_shard(

@@ -9,6 +9,8 @@ fresh compile).
 
 from __future__ import annotations
 
+import atexit
+import hashlib
 import logging
 import os
 import shutil
@@ -28,12 +30,22 @@ from subslope.physics.pairs.sums import (
 )
 from subslope.render.settings import RenderSettings
 
-__all__ = ["FEW_MEMBERS", "Kernels", "clear_cache", "kernels_for", "use_compile_cache"]
+__all__ = [
+    "FEW_MEMBERS",
+    "Kernels",
+    "clear_cache",
+    "kernel_source_key",
+    "keep_traced_graphs",
+    "kernels_for",
+    "torch_default_folder",
+    "use_compile_cache",
+]
 
 log = logging.getLogger(__name__)
 
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
+_SAVE_AT_EXIT = False
 _MAX_KERNEL_GRAPHS = 64
 _KERNEL_FUNCTIONS = {
     "direct": direct_sums,
@@ -63,17 +75,64 @@ class Kernels:
 
 def use_compile_cache(folder: str | os.PathLike[str] | None) -> dict[str, str]:
     """Point torch.compile's on-disk caches at ``folder`` (made absolute, created):
-    ``TORCHINDUCTOR_CACHE_DIR`` and ``TRITON_CACHE_DIR`` (``<folder>/triton``), each only
-    where the environment does not set it already. Call before the first compile;
-    returns the variables in effect."""
+    ``TORCHINDUCTOR_CACHE_DIR`` (``<folder>/<kernel key>``, :func:`kernel_source_key`) and
+    ``TRITON_CACHE_DIR`` (``<folder>/triton``), each only where the environment does not
+    set it already (torch's own default, which importing parts of torch fills in, does not
+    count as set). Where the inductor folder is ours, dynamo's traced graphs are kept there
+    too (:func:`keep_traced_graphs`), so that a later process loads the kernels without
+    tracing them. Call before the first compile; returns the variables in effect."""
     if folder is not None:
         root = Path(folder).resolve()
-        root.mkdir(parents=True, exist_ok=True)
-        os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(root))
+        ours = os.environ.get("TORCHINDUCTOR_CACHE_DIR") in (None, torch_default_folder())
+        if ours:
+            os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(root / kernel_source_key())
         os.environ.setdefault("TRITON_CACHE_DIR", str(root / "triton"))
+        Path(os.environ["TORCHINDUCTOR_CACHE_DIR"]).mkdir(parents=True, exist_ok=True)
+        if ours:
+            keep_traced_graphs()
     return {
         k: os.environ[k] for k in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR") if k in os.environ
     }
+
+
+def torch_default_folder() -> str:
+    """torch's own inductor folder (``/tmp/torchinductor_<user>``), made absolute."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    return os.path.abspath(default_cache_dir())
+
+
+def kernel_source_key() -> str:
+    """12 hex digits of the SHA-256 of the kernels' sources (this module and
+    :mod:`subslope.physics.pairs`) and the torch version. A traced graph loaded from disk
+    is not traced again, so module-level constants that it baked in (the polynomial
+    coefficients) could go stale; a folder per key rules that out."""
+    digest = hashlib.sha256(torch.__version__.encode())
+    pairs = Path(__file__).resolve().parents[1] / "physics" / "pairs"
+    for path in [Path(__file__).resolve(), *sorted(pairs.glob("*.py"))]:
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def keep_traced_graphs() -> None:
+    """Keep dynamo's traced graphs in the inductor folder (torch's caching precompile,
+    ``torch._dynamo.config.caching_precompile``) and write them when the process ends.
+    A fresh process then skips dynamo's symbolic tracing of every kernel graph it
+    finds there (about 1 s a graph on one core). Torch calls the feature experimental:
+    the graphs of a process whose save fails are traced again by the next one."""
+    global _SAVE_AT_EXIT
+    torch._dynamo.config.caching_precompile = True
+    if not _SAVE_AT_EXIT:
+        atexit.register(_save_traced_graphs)
+        _SAVE_AT_EXIT = True
+
+
+def _save_traced_graphs() -> None:
+    try:
+        torch.compiler.save_cache_artifacts()
+    except Exception as exc:  # pragma: no cover - depends on the toolchain
+        log.warning("could not keep the traced kernel graphs (%s); they will be traced again", exc)
 
 
 def _compiled_or_eager(name: str, device: torch.device):

@@ -1,0 +1,90 @@
+"""The on-disk compile cache: where it lives, and that kernels loaded from it without
+tracing give the same numbers as the process that compiled them."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import torch
+
+from subslope.render import kernels
+from subslope.render.kernels import kernel_source_key, use_compile_cache
+
+# One process: render with the compiled far-field (EPL) and few-member (NFW) kernels on a
+# fixed input, print the sums and how many graphs came from the dynamo cache.
+_JOB = """
+import json, sys, torch
+from torch._dynamo.utils import counters  # fills in torch's default folder
+from subslope.physics.pairs.sums import member_table
+from subslope.render.kernels import kernels_for, use_compile_cache
+use_compile_cache(sys.argv[1])
+from subslope.render.settings import RenderSettings
+torch.set_num_threads(1)
+g = torch.Generator().manual_seed(0)
+def u(lo, hi, n):
+    return lo + (hi - lo) * torch.rand(1, n, generator=g)
+epl = member_table("epl", dict(gamma=u(1.2, 2.8, 40), amp=u(1e-4, 1e-3, 40), e1=u(-.2, .2, 40),
+                               e2=u(-.2, .2, 40), x=u(-2, 2, 40), y=u(-2, 2, 40)), 8)
+nfw = member_table("nfw", dict(r_s=u(.05, .3, 3), alpha_rs=u(1e-3, 1e-2, 3), x=u(-2, 2, 3),
+                               y=u(-2, 2, 3)), 0)
+x, y = u(-2, 2, 500), u(-2, 2, 500)
+k = kernels_for(RenderSettings(compile="on"), torch.device("cpu"))
+far = k.far(x, y, epl, "epl", 1.0 / u(0.1, 0.5, 40) ** 2)
+few = k.few(x, y, nfw, "nfw")
+out = [float(t.double().sum()) for t in (*far, *few)]
+print(json.dumps({"sums": out, "hits": counters["dynamo_cache"]["dynamo_cache_hit"]}))
+"""
+
+
+def _run(folder) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_CACHE_DIR")}
+    env["OMP_NUM_THREADS"] = "1"
+    command = [sys.executable, "-c", _JOB, str(folder)]
+    proc = subprocess.run(command, capture_output=True, text=True, env=env, check=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_the_compile_cache_is_set_once_and_the_environment_wins(tmp_path, monkeypatch):
+    for name in ("TORCHINDUCTOR_CACHE_DIR", "TRITON_CACHE_DIR"):
+        monkeypatch.delenv(name, raising=False)
+    kept = []
+    monkeypatch.setattr(kernels, "keep_traced_graphs", lambda: kept.append(True))
+    env = use_compile_cache(tmp_path / "cc")
+    assert env == {
+        "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "cc" / kernel_source_key()),
+        "TRITON_CACHE_DIR": str(tmp_path / "cc" / "triton"),
+    }
+    assert (tmp_path / "cc" / kernel_source_key()).is_dir()
+    assert kept == [True]
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", "/mine")
+    monkeypatch.delenv("TRITON_CACHE_DIR")
+    assert use_compile_cache(tmp_path / "other")["TORCHINDUCTOR_CACHE_DIR"] == "/mine"
+    assert use_compile_cache(None)["TORCHINDUCTOR_CACHE_DIR"] == "/mine"
+    assert kept == [True], "a folder the user chose gets no traced graphs of ours"
+
+
+def test_torch_own_default_folder_does_not_count_as_chosen(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", kernels.torch_default_folder())
+    monkeypatch.delenv("TRITON_CACHE_DIR", raising=False)
+    monkeypatch.setattr(kernels, "keep_traced_graphs", lambda: None)
+    env = use_compile_cache(tmp_path / "cc")
+    assert env["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "cc" / kernel_source_key())
+
+
+def test_the_key_follows_the_kernel_sources_and_torch(monkeypatch):
+    key = kernel_source_key()
+    assert len(key) == 12 and int(key, 16) >= 0
+    monkeypatch.setattr(torch, "__version__", torch.__version__ + "+other")
+    assert kernel_source_key() != key
+
+
+def test_kernels_loaded_without_tracing_give_the_same_numbers(tmp_path):
+    first = _run(tmp_path / "cc")
+    second = _run(tmp_path / "cc")
+    assert first["hits"] == 0
+    assert second["hits"] >= 2, "the second process traced the kernels again"
+    assert second["sums"] == first["sums"]
+    assert all(map(lambda v: v == v and abs(v) < float("inf"), first["sums"]))
