@@ -13,12 +13,15 @@ import torch
 from subslope.render import kernels
 from subslope.render.kernels import kernel_source_key, use_compile_cache
 
-# One process: render with the compiled far-field (EPL) and few-member (NFW) kernels on a
-# fixed input, print the sums and how many graphs came from the dynamo cache.
+# One process: evaluate the compiled kernels named in argv[2] (comma-separated: far = the
+# far-field EPL kernel, few = the few-member NFW kernel, direct = the direct EPL sum) on a
+# fixed input; print the sums, how many graphs came from the dynamo cache and which
+# kernels fell back to eager.
 _JOB = """
 import json, sys, torch
 from torch._dynamo.utils import counters  # fills in torch's default folder
 from subslope.physics.pairs.sums import member_table
+from subslope.render import kernels
 from subslope.render.kernels import kernels_for, use_compile_cache
 use_compile_cache(sys.argv[1])
 from subslope.render.settings import RenderSettings
@@ -30,19 +33,20 @@ epl = member_table("epl", dict(gamma=u(1.2, 2.8, 40), amp=u(1e-4, 1e-3, 40), e1=
                                e2=u(-.2, .2, 40), x=u(-2, 2, 40), y=u(-2, 2, 40)), 8)
 nfw = member_table("nfw", dict(r_s=u(.05, .3, 3), alpha_rs=u(1e-3, 1e-2, 3), x=u(-2, 2, 3),
                                y=u(-2, 2, 3)), 0)
-x, y = u(-2, 2, 500), u(-2, 2, 500)
+x, y, inv_rc2 = u(-2, 2, 500), u(-2, 2, 500), 1.0 / u(0.1, 0.5, 40) ** 2
 k = kernels_for(RenderSettings(compile="on"), torch.device("cpu"))
-far = k.far(x, y, epl, "epl", 1.0 / u(0.1, 0.5, 40) ** 2)
-few = k.few(x, y, nfw, "nfw")
-out = [float(t.double().sum()) for t in (*far, *few)]
-print(json.dumps({"sums": out, "hits": counters["dynamo_cache"]["dynamo_cache_hit"]}))
+calls = {"far": lambda: k.far(x, y, epl, "epl", inv_rc2), "few": lambda: k.few(x, y, nfw, "nfw"),
+         "direct": lambda: k.direct(x, y, epl, "epl")}
+out = [float(t.double().sum()) for name in sys.argv[2].split(",") for t in calls[name]()]
+print(json.dumps({"sums": out, "hits": counters["dynamo_cache"]["dynamo_cache_hit"],
+                  "eager": sorted(map(str, kernels._COMPILE_FAILED))}))
 """
 
 
-def _run(folder) -> dict:
+def _run(folder, *extra: str) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.endswith("_CACHE_DIR")}
     env["OMP_NUM_THREADS"] = "1"
-    command = [sys.executable, "-c", _JOB, str(folder)]
+    command = [sys.executable, "-c", _JOB, str(folder), *extra]
     proc = subprocess.run(command, capture_output=True, text=True, env=env, check=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -82,9 +86,21 @@ def test_the_key_follows_the_kernel_sources_and_torch(monkeypatch):
 
 
 def test_kernels_loaded_without_tracing_give_the_same_numbers(tmp_path):
-    first = _run(tmp_path / "cc")
-    second = _run(tmp_path / "cc")
+    first = _run(tmp_path / "cc", "far,few")
+    second = _run(tmp_path / "cc", "far,few")
     assert first["hits"] == 0
     assert second["hits"] >= 2, "the second process traced the kernels again"
     assert second["sums"] == first["sums"]
     assert all(map(lambda v: v == v and abs(v) < float("inf"), first["sums"]))
+    assert first["eager"] == second["eager"] == []
+
+
+def test_graphs_of_several_processes_and_new_ones_live_side_by_side(tmp_path):
+    # each process numbers the globals its graphs install from 0 unless told otherwise:
+    # graphs saved by two processes, and a graph traced beside them, must not collide
+    _run(tmp_path / "cc", "far")
+    _run(tmp_path / "cc", "few")
+    mixed = _run(tmp_path / "cc", "far,few,direct")
+    assert mixed["hits"] >= 2
+    assert mixed["eager"] == [], "a kernel fell back to eager"
+    assert _run(tmp_path / "cc", "far,few,direct")["sums"] == mixed["sums"]

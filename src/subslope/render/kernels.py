@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import atexit
 import hashlib
+import itertools
 import logging
 import os
+import secrets
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,6 +125,15 @@ def keep_traced_graphs() -> None:
     the graphs of a process whose save fails are traced again by the next one."""
     global _SAVE_AT_EXIT
     torch._dynamo.config.caching_precompile = True
+    # Dynamo names the globals a graph installs in its module from one counter that starts
+    # at 0 in every process, and a loaded graph brings the names of the process that traced
+    # it: two loaded graphs, or a loaded and a new one, can claim the same name ("Name
+    # '__builtins_dict___2' already exists in scope") and the kernel then falls back to
+    # eager. Numbering this process's graphs from a random 64-bit offset keeps them apart.
+    from torch._dynamo import bytecode_transformation
+
+    if hasattr(bytecode_transformation, "_unique_id_counter"):
+        bytecode_transformation._unique_id_counter = itertools.count(secrets.randbits(64))
     if not _SAVE_AT_EXIT:
         atexit.register(_save_traced_graphs)
         _SAVE_AT_EXIT = True
