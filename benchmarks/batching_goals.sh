@@ -25,7 +25,7 @@ run() {  # name, command...
 
 {
     echo "# Throughput goals, $(date -u +%Y-%m-%dT%H:%MZ), commit $(git rev-parse --short HEAD)"
-    echo "CPU: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(nproc) cores"
+    echo "CPU: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(nproc --all) cores"
 } >"$out/goals.md"
 run end_to_end $py benchmarks/simulate_end_to_end.py --images 64 --repeats 5 --lenstronomy 4
 run vs_lenstronomy $py benchmarks/simulate_vs_lenstronomy.py --n-img 8 --repeats 3 --no-ref64 \
