@@ -113,9 +113,10 @@ def _simulation_seconds(source: str, scene: str, index: int) -> float:
         return float(own.read_text())
     real = Path(source).resolve()
     job = real.parents[2] / "benchmarks" / "simulate_shard" / scene / f"shard_{index}.tsv"
-    if job.exists():
-        return float(next(csv.DictReader(open(job), delimiter="\t"))["s"])
-    return 0.0
+    if not job.exists():
+        return 0.0
+    with open(job) as f:
+        return float(next(csv.DictReader(f, delimiter="\t"))["s"])
 
 
 def shard_tasks(

@@ -24,6 +24,7 @@ LAYERS = {
     "ragged": 0,
     "devices": 0,
     "logs": 0,
+    "sources": 0,
     "physics": 1,
     "stats": 1,
     "render": 2,

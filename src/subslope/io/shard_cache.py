@@ -28,17 +28,16 @@ scene's folder.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
 import shutil
 from collections.abc import Mapping
-from functools import lru_cache
 from pathlib import Path
 
 from subslope.io.atomic import atomic_write, temporary_path, write_text
 from subslope.io.shards import ShardError, file_sha256, verify_shard
+from subslope.sources import package_digest
 
 __all__ = [
     "CODE_PARTS",
@@ -76,25 +75,12 @@ CODE_PARTS = (
 MANIFEST = "manifest.json"
 
 
-@lru_cache(maxsize=4)
 def code_digest(parts: tuple[str, ...] = CODE_PARTS) -> str:
-    """SHA-256 over the files of ``parts`` (package-relative folders or files; relative
-    path and bytes, sorted): with :data:`CODE_PARTS`, a change to the code that makes
-    shards invalidates every cached shard, while one to the estimator, the statistics,
-    the figures or the stages does not."""
-    root = Path(__file__).resolve().parents[1]
-    files: list[Path] = []
-    for part in parts:
-        path = root / part
-        files += sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    digest = hashlib.sha256()
-    for path in sorted(files):
-        if "__pycache__" in path.parts or path.suffix == ".pyc":
-            continue
-        digest.update(path.relative_to(root).as_posix().encode())
-        digest.update(b"\0")
-        digest.update(path.read_bytes())
-    return digest.hexdigest()
+    """SHA-256 over the files of ``parts`` (:func:`subslope.sources.package_digest`): with
+    :data:`CODE_PARTS`, a change to the code that makes shards invalidates every cached
+    shard, while one to the estimator, the statistics, the figures or the stages does
+    not."""
+    return package_digest(parts)
 
 
 def cached_path(folder: str | os.PathLike[str], scene: str, key: str) -> Path:

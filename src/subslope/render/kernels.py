@@ -31,6 +31,7 @@ from subslope.physics.pairs.sums import (
     near_tile_sums,
 )
 from subslope.render.settings import RenderSettings
+from subslope.sources import package_digest
 
 __all__ = [
     "FEW_MEMBERS",
@@ -47,7 +48,7 @@ log = logging.getLogger(__name__)
 
 _COMPILED: dict[Any, Any] = {}
 _COMPILE_FAILED: set = set()
-_SAVE_AT_EXIT = False
+_KEEPING = False  # keep_traced_graphs ran in this process
 _MAX_KERNEL_GRAPHS = 64
 _KERNEL_FUNCTIONS = {
     "direct": direct_sums,
@@ -106,15 +107,12 @@ def torch_default_folder() -> str:
 
 def kernel_source_key() -> str:
     """12 hex digits of the SHA-256 of the kernels' sources (this module and
-    :mod:`subslope.physics.pairs`) and the torch version. A traced graph loaded from disk
-    is not traced again, so module-level constants that it baked in (the polynomial
-    coefficients) could go stale; a folder per key rules that out."""
-    digest = hashlib.sha256(torch.__version__.encode())
-    pairs = Path(__file__).resolve().parents[1] / "physics" / "pairs"
-    for path in [Path(__file__).resolve(), *sorted(pairs.glob("*.py"))]:
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:12]
+    :mod:`subslope.physics.pairs`, :func:`subslope.sources.package_digest`) and the torch
+    version. A traced graph loaded from disk is not traced again, so module-level
+    constants that it baked in (the polynomial coefficients) could go stale; a folder per
+    key rules that out."""
+    code = package_digest(("render/kernels.py", "physics/pairs"))
+    return hashlib.sha256(f"{torch.__version__}\0{code}".encode()).hexdigest()[:12]
 
 
 def keep_traced_graphs() -> None:
@@ -123,7 +121,10 @@ def keep_traced_graphs() -> None:
     A fresh process then skips dynamo's symbolic tracing of every kernel graph it
     finds there (about 1 s a graph on one core). Torch calls the feature experimental:
     the graphs of a process whose save fails are traced again by the next one."""
-    global _SAVE_AT_EXIT
+    global _KEEPING
+    if _KEEPING:
+        return
+    _KEEPING = True
     torch._dynamo.config.caching_precompile = True
     # Dynamo names the globals a graph installs in its module from one counter that starts
     # at 0 in every process, and a loaded graph brings the names of the process that traced
@@ -134,9 +135,7 @@ def keep_traced_graphs() -> None:
 
     if hasattr(bytecode_transformation, "_unique_id_counter"):
         bytecode_transformation._unique_id_counter = itertools.count(secrets.randbits(64))
-    if not _SAVE_AT_EXIT:
-        atexit.register(_save_traced_graphs)
-        _SAVE_AT_EXIT = True
+    atexit.register(_save_traced_graphs)
 
 
 def _save_traced_graphs() -> None:
