@@ -22,6 +22,10 @@ training size n (the first n/1000 training shards), the config's estimator is tr
 Rows go to ``OUT/learning_curve.csv`` as each run finishes (a rerun skips finished
 runs); ``--figure`` draws ``OUT/learning_curve.png`` and fits ρ = a + b ln n per curve
 (:func:`trend`). Work runs in ``--workers`` processes of one thread each.
+``--training-seeds`` repeats the runs with other training seeds (``_seedS`` run
+folders); ``--readouts SIMULATE_SHARD`` reads, with every trained run of the first
+curve, the 13 HST lenses and a campaign's a = 1 CDM sets (:func:`readouts`:
+``OUT/readouts.csv``), which is where trainings that agree in-distribution can differ.
 
     .venv/bin/python benchmarks/learning_curve.py --out results/learning_curve \\
         --curve hst=config/config.yaml:results/simulate_shard \\
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import json
 import math
 import os
@@ -46,6 +51,7 @@ COLUMNS = (
     "curve",
     "inputs",
     "augment",
+    "training_seed",
     "n_train",
     "val_loss",
     "epochs",
@@ -167,7 +173,8 @@ def _profiles(model, meta, paths):
                     device="cpu",
                 )
             )
-            gamma.append(np.asarray(par["gamma_sub"]))
+            label = par["gamma_sub"] if "gamma_sub" in par else np.full(len(s.images), np.nan)
+            gamma.append(np.asarray(label))
             sets.append(np.asarray(par["set_index"]) + 10**6 * k)
     return g, np.concatenate(prof), np.concatenate(gamma), np.concatenate(sets)
 
@@ -201,7 +208,7 @@ def held_out_metrics(g, prof, gamma, sets, n: int, level: float = 0.68) -> dict:
 
 def _run_task(args) -> dict:
     """Train and evaluate one (curve, transform, n); the row of the CSV."""
-    label, config_path, resources, inputs, augment, n, out, sim_seconds = args
+    label, config_path, resources, inputs, augment, seed, n, out, sim_seconds = args
     import torch
 
     torch.set_num_threads(1)
@@ -213,13 +220,15 @@ def _run_task(args) -> dict:
     config = _config(config_path, resources, light_fit)
     config["training"]["inputs"] = inputs
     config["training"]["augment"] = augment
+    if seed != "":
+        config["training"]["seed"] = int(seed)
     shards = Path(out) / label / _shard_folder(out, label, light_fit)
     per_shard = config["simulation"]["scenes"]["train"]["images_per_shard"]
     train_paths = [str(shards / "train" / f"shard_{k}.h5") for k in range(n // per_shard)]
     val = sorted(map(str, (shards / "validation").glob("shard_*.h5")))
     test = sorted(map(str, (shards / "test_epl").glob("shard_*.h5")), key=_index)
     suffix = "" if augment == "none" else f"_{augment}"
-    run = Path(out) / label / "runs" / f"{inputs}{suffix}_n{n}"
+    run = Path(out) / label / "runs" / f"{inputs}{suffix}_n{n}{_seed_suffix(seed)}"
     t = time.perf_counter()
     white = compute_whitening(train_paths, run / "whitening.json", inputs=input_transform(config))
     summary = train(training_section(config), train_paths, val, white, run, run / "ckpt")
@@ -231,6 +240,7 @@ def _run_task(args) -> dict:
         "curve": label,
         "inputs": inputs,
         "augment": augment,
+        "training_seed": seed,
         "n_train": n,
         "val_loss": summary["best_val_loss"],
         "epochs": summary["epochs"],
@@ -243,6 +253,120 @@ def _run_task(args) -> dict:
         "core_hours": (time.perf_counter() - t) / 3600,
         "sim_core_hours": sim_seconds * n / per_shard / 3600,
     }
+
+
+READOUT_COLUMNS = (
+    "curve",
+    "run",
+    "hst_mle",
+    "hst_lower",
+    "hst_upper",
+    "hst_closed",
+    "tau_13",
+    "nfw_p16",
+    "nfw_p50",
+    "nfw_p84",
+    "nfw_edge",
+    "tnfw_p16",
+    "tnfw_p50",
+    "tnfw_p84",
+    "tnfw_edge",
+    "n_cdm_sets",
+)
+
+
+def readouts(out: Path, label: str, config_path: str, resources, run: Path, cdm: Path) -> dict:
+    """What one trained run reads of the data and of CDM: the combined 13-lens HST
+    interval and the stack γ_MLE of the a = 1 NFW and tNFW sets (median, 16–84%, the
+    fraction at a prior edge), all with the 13-stack threshold τ_13 of every test_epl set
+    (:func:`subslope.stages.calibrate.safe_threshold`). ``cdm``: a campaign's
+    ``simulate_shard`` folder (``nfw/a1``, ``tnfw/a1``); their shards get the lens-light
+    fit in ``OUT/LABEL/cdm_fit`` when the run's inputs need it."""
+    import torch
+
+    torch.set_num_threads(1)
+    from subslope.nre.inputs import InputTransform
+    from subslope.nre.train import load_estimator
+    from subslope.stages.calibrate import safe_threshold
+    from subslope.stages.hst import hst_profiles
+    from subslope.stages.simulate import attach_light_fit
+    from subslope.stats import calibration as cal
+    from subslope.stats import intervals as iv
+
+    model, meta = load_estimator(run / "model.pt")
+    light_fit = InputTransform.from_json(meta.get("inputs")).needs_light
+    config = _config(config_path, resources, light_fit)
+    shards = out / label / _shard_folder(out, label, light_fit)
+    test = sorted(map(str, (shards / "test_epl").glob("shard_*.h5")), key=_index)
+    g, prof, gamma, sets = _profiles(model, meta, test)
+    stacks = cal.make_stacks(gamma, sets, 13, mode="independent")
+    tau, _ = safe_threshold(cal.stack_t_true(prof, g, stacks), 0.68)
+    data = Path(config["data"]["resources_dir"])
+    _, _, hst, _ = hst_profiles(
+        run / "model.pt",
+        data / "hst",
+        g,
+        lens_centre=config["hst"]["lens_centre"],
+        pixel_scale=config["instrument"]["pixel_scale"],
+        device="cpu",
+        config=config,
+    )
+    combined = iv.interval(iv.stack(hst), g, tau)
+    row = {
+        "curve": label,
+        "run": run.name,
+        "hst_mle": combined.mle,
+        "hst_lower": combined.lower,
+        "hst_upper": combined.upper,
+        "hst_closed": not (combined.lower_at_edge or combined.upper_at_edge),
+        "tau_13": float(tau),
+    }
+    for scene in ("nfw", "tnfw"):
+        paths = sorted(map(str, (cdm / scene / "a1").glob("shard_*.h5")), key=_index)
+        if light_fit:
+            fitted = out / label / "cdm_fit" / scene
+            for k, p in enumerate(paths):
+                if not (fitted / Path(p).name).exists():
+                    fitted.mkdir(parents=True, exist_ok=True)
+                    attach_light_fit(config, p, fitted / Path(p).name)
+                paths[k] = str(fitted / Path(p).name)
+        _, cprof, _, csets = _profiles(model, meta, paths)
+        held = [iv.interval(iv.stack(cprof[csets == s]), g, tau) for s in np.unique(csets)]
+        mle = np.array([h.mle for h in held])
+        p16, p50, p84 = np.quantile(mle, [0.16, 0.5, 0.84])
+        row |= {
+            f"{scene}_p16": float(p16),
+            f"{scene}_p50": float(p50),
+            f"{scene}_p84": float(p84),
+            f"{scene}_edge": float(np.mean([h.lower_at_edge or h.upper_at_edge for h in held])),
+            "n_cdm_sets": len(held),
+        }
+    return row
+
+
+def _readout_task(args) -> dict:
+    return readouts(*args)
+
+
+def _write_readouts(pool, args, curves) -> None:
+    """:func:`readouts` of every run of the first curve not yet in ``OUT/readouts.csv``."""
+    label, (config_path, _) = next(iter(curves.items()))
+    table = args.out / "readouts.csv"
+    done = {r["run"] for r in _read_rows(table)}
+    runs = sorted(p.parent for p in (args.out / label / "runs").glob("*/model.pt"))
+    tasks = [
+        (args.out, label, config_path, args.resources, run, args.readouts)
+        for run in runs
+        if run.name not in done
+    ]
+    for row in pool.map(_readout_task, tasks):
+        _append_row(table, row, READOUT_COLUMNS)
+        print(json.dumps(row), flush=True)
+
+
+def _seed_suffix(seed) -> str:
+    """Run-folder suffix of a training seed other than the config's (``""``)."""
+    return "" if seed == "" else f"_seed{seed}"
 
 
 def _shard_folder(out, label: str, light_fit: bool) -> str:
@@ -283,26 +407,26 @@ def _read_rows(path: Path) -> list[dict]:
     if not path.exists():
         return []
     with open(path) as fh:
-        return [{"augment": "none", **r} for r in csv.DictReader(fh)]
+        return [{"augment": "none", "training_seed": "", **r} for r in csv.DictReader(fh)]
 
 
-def _append_row(path: Path, row: dict) -> None:
-    """Append ``row``; a table with an older header is rewritten with :data:`COLUMNS`."""
+def _append_row(path: Path, row: dict, columns: tuple[str, ...] = COLUMNS) -> None:
+    """Append ``row``; a table with an older header is rewritten with ``columns``."""
     old = _read_rows(path)
     header = None
     if path.exists():
         with open(path) as fh:
             header = next(csv.reader(fh), None)
-    if old and header != list(COLUMNS):
+    if old and header != list(columns):
         tmp = path.with_suffix(".tmp")
         with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=COLUMNS)
+            w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
             w.writeheader()
             w.writerows(old)
         os.replace(tmp, path)
     new = not path.exists()
     with open(path, "a", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w = csv.DictWriter(fh, fieldnames=columns)
         if new:
             w.writeheader()
         w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
@@ -311,9 +435,13 @@ def _append_row(path: Path, row: dict) -> None:
 
 
 def _curve_key(row: dict) -> tuple[str, ...]:
-    """(curve, transform) and the augmentation where there is one."""
-    aug = row.get("augment", "none")
-    return (row["curve"], row["inputs"]) + (() if aug == "none" else (aug,))
+    """(curve, transform) and the augmentation and training seed where there are ones."""
+    aug, seed = row.get("augment", "none"), row.get("training_seed", "")
+    return (
+        (row["curve"], row["inputs"])
+        + (() if aug == "none" else (aug,))
+        + (() if seed == "" else (f"seed{seed}",))
+    )
 
 
 def figure(rows: list[dict], path: Path) -> dict:
@@ -374,6 +502,20 @@ def main(argv=None) -> None:
         choices=["none", "dihedral"],
         help="training.augment of the runs (every curve)",
     )
+    ap.add_argument(
+        "--training-seeds",
+        nargs="+",
+        default=["config"],
+        help="training.seed of the runs: integers, or 'config' for the config's own",
+    )
+    ap.add_argument(
+        "--readouts",
+        type=Path,
+        default=None,
+        metavar="SIMULATE_SHARD",
+        help="also read the HST lenses and the a = 1 CDM sets (a campaign's simulate_shard "
+        "folder) with every trained run of the first curve: OUT/readouts.csv",
+    )
     ap.add_argument("--resources", default=None, help="data folder (default: the config's)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--figure", action="store_true")
@@ -385,7 +527,11 @@ def main(argv=None) -> None:
         curves[label] = (config_path, folder)
     args.out.mkdir(parents=True, exist_ok=True)
     table = args.out / "learning_curve.csv"
-    done = {(r["curve"], r["inputs"], r["augment"], int(r["n_train"])) for r in _read_rows(table)}
+    done = {
+        (r["curve"], r["inputs"], r["augment"], r["training_seed"], int(r["n_train"]))
+        for r in _read_rows(table)
+    }
+    seeds = ["" if s == "config" else str(int(s)) for s in args.training_seeds]
     light_fit = "light_subtracted" in set(args.inputs) | set(args.reference_inputs)
     sizes = {
         label: args.sizes if k == 0 else (args.reference_sizes or args.sizes)
@@ -409,17 +555,18 @@ def main(argv=None) -> None:
             folder = "shards" if light_fit else "shards_nofit"
             sim = float(np.median(cost[args.out / label / folder / "train"]))
             for inputs in args.inputs if k == 0 else args.reference_inputs:
-                for augment in args.augment:
-                    for n in sizes[label]:
-                        if (label, inputs, augment, n) not in done:
-                            runs.append(
-                                (label, config_path, args.resources, inputs, augment, n)
-                                + (str(args.out), sim)
-                            )
+                for augment, seed, n in itertools.product(args.augment, seeds, sizes[label]):
+                    if (label, inputs, augment, seed, n) not in done:
+                        runs.append(
+                            (label, config_path, args.resources, inputs, augment, seed, n)
+                            + (str(args.out), sim)
+                        )
         for future in as_completed([pool.submit(_run_task, r) for r in runs]):
             row = future.result()
             _append_row(table, row)
             print(json.dumps(row), flush=True)
+        if args.readouts:
+            _write_readouts(pool, args, curves)
     if args.figure:
         trends = figure(_read_rows(table), args.out / "learning_curve.png")
         (args.out / "trend.json").write_text(json.dumps(trends, indent=2))

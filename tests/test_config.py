@@ -29,6 +29,7 @@ SHIPPED_DEVIATIONS = {
     ("simulation", "scenes"),
     ("simulation", "multipliers"),
     ("simulation", "render", "compile"),
+    ("instrument", "noise_correlation"),
     ("training", "batch_size"),
     ("training", "num_workers"),
     ("training", "checkpoint_every"),
@@ -98,6 +99,7 @@ def test_shipped_config_is_valid_and_complete():
     assert loaded["simulation"]["sources"]["cuts"]["mag_max"] is None
     assert loaded["instrument"]["pixel_scale"] == 0.04
     assert loaded["instrument"]["npix"] == 100
+    assert loaded["instrument"]["noise_correlation"] == [0.32, 0.55]  # docs/realism.md
     assert loaded["instrument"]["psf"]["source"] == "empirical"
     assert loaded["cosmology"]["name"] == "Planck18"
     assert loaded["stages"]["gallery"] is True
@@ -219,6 +221,12 @@ def test_defaults_fill_partial_sections():
         ({"instrument": {"npix": 4}}, "instrument.npix", "[8, 1024]"),
         ({"instrument": {"read_noise": -1}}, "instrument.read_noise", "[0, 100]"),
         ({"instrument": {"psf": {"index": 56}}}, "instrument.psf.index", "[0, 55]"),
+        ({"instrument": {"noise_correlation": 0.8}}, "instrument.noise_correlation", "[0, 0.7071)"),
+        (
+            {"instrument": {"noise_correlation": [0.3]}},
+            "instrument.noise_correlation",
+            "number or array",
+        ),
         (
             {"instrument": {"psf": {"source": "airy"}}},
             "instrument.psf.source",
@@ -428,6 +436,10 @@ def test_active_stages_follow_the_needs():
         ),
         ({"hst": {"combine": ["SDSSJ0000+0000"]}}, r"hst.combine: unknown system\(s\)"),
         ({"hst": {"highlight": ["J0946"]}}, r"hst.highlight: unknown system\(s\) \['J0946'\]"),
+        (
+            {"instrument": {"noise_correlation": [0.5, 0.3]}},
+            r"instrument.noise_correlation = \[0.5, 0.3\]: a range \[low, high\] needs low <= high",
+        ),
     ],
 )
 def test_plan_problems_seen_before_any_job(tmp_path, data_dir, override, match):

@@ -14,6 +14,7 @@ from subslope.validation.domain import (
     compact_objects,
     domain_percentiles,
     image_statistics,
+    noise_lag1,
     spread_table,
 )
 
@@ -79,6 +80,30 @@ def test_statistics_of_simulated_lenses_are_finite_and_as_defined(data_dir):
     # the border holds the sky level and the wings of the lens light
     excess = stats["border_level"].to_numpy() - macro["sky_level"]
     assert np.all(excess > -0.005) and np.min(excess) < 0.005
+
+
+def test_noise_lag1_reads_the_pixel_correlation_and_not_smooth_light():
+    import torch
+
+    from subslope.physics.instrument import correlate_noise
+
+    white = torch.randn(
+        40, 100, 100, generator=torch.Generator().manual_seed(0), dtype=torch.float64
+    )
+    region = np.ones((40, 100, 100), dtype=bool)
+    region[:, 30:70, 30:70] = False
+    y, x = np.mgrid[:100, :100]
+    smooth = 3.0 * np.exp(-((x - 20.0) ** 2 + (y - 80.0) ** 2) / (2 * 8.0**2))  # residual light
+    values = {}
+    for rho in (0.0, 0.3, 0.4, 0.5):
+        noise = correlate_noise(white, rho).numpy()
+        values[rho] = noise_lag1(noise + smooth, region)
+        assert np.isfinite(values[rho]).all()
+    np.testing.assert_allclose(np.median(values[0.0]), -0.037, atol=0.01)
+    np.testing.assert_allclose(np.median(values[0.4]), 0.268, atol=0.015)
+    medians = [np.median(values[r]) for r in (0.0, 0.3, 0.4, 0.5)]
+    assert np.all(np.diff(medians) > 0.03)
+    assert np.isnan(noise_lag1(white[:1].numpy(), np.zeros((1, 100, 100), dtype=bool))).all()
 
 
 def test_border_level_is_the_clipped_median_of_the_frame():

@@ -10,11 +10,13 @@ from subslope.physics.instrument import (
     Instrument,
     add_noise,
     convolve,
+    correlate_noise,
     degrade_psf,
     fft_size,
     gaussian_psf,
     kernel_spectrum,
     load_empirical_psf,
+    noise_kernel_weight,
     noise_sigma_map,
     psf_fwhm,
 )
@@ -196,6 +198,66 @@ def test_noise_seeded_and_reproducible(dtype):
     assert torch.allclose(d * 2200, torch.round(d * 2200), atol=1e-6)  # integer electron counts
     with pytest.raises(ValueError, match="generator"):
         add_noise(img, "seed")
+
+
+def _lag_correlation(field, dy, dx):
+    a, b = field[..., : field.shape[-2] - dy, : field.shape[-1] - dx], field[..., dy:, dx:]
+    return float((a * b).mean() / (a.std() * b.std()))
+
+
+@pytest.mark.parametrize("rho", [0.2, 0.4, 0.6])
+def test_correlated_noise_has_the_lag_correlations_of_its_kernel(rho):
+    w = noise_kernel_weight(rho)
+    assert 2 * w / (1 + 2 * w * w) == pytest.approx(rho, rel=1e-12)
+    white = torch.randn(64, 96, 96, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    field = correlate_noise(white, rho)
+    inner = field[:, 1:-1, 1:-1]
+    assert float(inner.var()) == pytest.approx(1.0, abs=0.01)
+    assert float(field[:, :, 0].var()) == pytest.approx(1.0, abs=0.03)  # border kept too
+    small = torch.randn(
+        20000, 3, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64
+    )
+    assert correlate_noise(small, rho).var(0).sub(1).abs().max() < 0.05  # corners and edges
+    assert _lag_correlation(inner, 0, 1) == pytest.approx(rho, abs=0.005)
+    assert _lag_correlation(inner, 1, 0) == pytest.approx(rho, abs=0.005)
+    assert _lag_correlation(inner, 1, 1) == pytest.approx(rho * rho, abs=0.005)
+    assert _lag_correlation(inner, 0, 2) == pytest.approx(w * w / (1 + 2 * w * w), abs=0.005)
+    assert _lag_correlation(inner, 0, 3) == pytest.approx(0.0, abs=0.005)
+
+
+def test_uncorrelated_noise_is_the_independent_draw_bit_for_bit():
+    img = torch.rand(3, 40, 40, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    plain = add_noise(img, 11)
+    assert torch.equal(add_noise(img, 11, instrument=Instrument(noise_correlation=0.0)), plain)
+    white = torch.randn(5, 7, generator=torch.Generator().manual_seed(3))
+    assert correlate_noise(white, 0.0) is white
+
+
+def test_a_correlation_range_draws_one_value_per_image_after_its_noise():
+    img = torch.full((1, 64, 64), 0.05, dtype=torch.float64)
+    ranged = Instrument(noise_correlation=(0.3, 0.5))
+    a, b = add_noise(img, 21, instrument=ranged), add_noise(img, 21, instrument=ranged)
+    assert torch.equal(a, b)  # the image's seed fixes its correlation
+    g = torch.Generator().manual_seed(21)
+    lam = (img + ranged.sky_per_pixel) * ranged.total_exposure_time
+    shot = torch.poisson(lam, generator=g) - lam
+    read = ranged.read_noise * torch.randn(img.shape, generator=g, dtype=torch.float64)
+    rho = 0.3 + 0.2 * float(torch.rand((), generator=g, dtype=torch.float64))
+    white = (shot + read) / ranged.total_exposure_time
+    torch.testing.assert_close(a, img + correlate_noise(white, rho), rtol=0, atol=1e-15)
+    drawn = []
+    for seed in range(40):
+        noise = add_noise(img, seed, instrument=ranged) - img
+        drawn.append(_lag_correlation(noise[0, 1:-1, 1:-1], 0, 1))
+    assert 0.25 < min(drawn) and max(drawn) < 0.57 and np.std(drawn) > 0.03
+
+
+@pytest.mark.parametrize(
+    "bad", [-0.1, 0.71, 1.0, (0.5, 0.3), (0.2, 0.8), (0.1, 0.2, 0.3), "0.3", float("nan")]
+)
+def test_noise_correlation_outside_its_range_is_refused(bad):
+    with pytest.raises(ValueError, match="noise_correlation must be a number in"):
+        Instrument(noise_correlation=bad)
 
 
 # ----------------------------------------------------------------------------- GPU

@@ -375,6 +375,34 @@ def test_real_run_tiny_simulation(tiny_run, campaign):
 
 
 @pytest.mark.slow
+def test_hst_profiles_are_the_ones_the_workflow_wrote(tiny_run, campaign):
+    import h5py
+
+    from subslope import config as cfgmod
+    from subslope.stages.hst import hst_profiles
+
+    config = cfgmod.load(campaign / "config" / "tiny.yaml", env=False)
+    with h5py.File(tiny_run / "analyze_hst" / "profiles.h5") as fh:
+        written, gammas = fh["log_ratio"][()], fh["gammas"][()]
+        names = [n.decode() for n in fh["names"][()]]
+        centres = fh["lens_x"][()], fh["lens_y"][()]
+    got, geometry, prof, meta = hst_profiles(
+        tiny_run / "train_estimator" / "model.pt",
+        campaign / config["data"]["resources_dir"] / "hst",
+        gammas,
+        lens_centre=config["hst"]["lens_centre"],
+        pixel_scale=config["instrument"]["pixel_scale"],
+        device="cpu",
+        config=config,
+    )
+    assert got == names and meta["whitening"]["std"] > 0
+    np.testing.assert_array_equal(geometry["lens_x"], centres[0])
+    np.testing.assert_array_equal(geometry["lens_y"], centres[1])
+    assert prof.shape == written.shape == (13, gammas.size)
+    np.testing.assert_allclose(prof, written, rtol=0, atol=1e-4)
+
+
+@pytest.mark.slow
 def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     import h5py
     import pandas as pd

@@ -29,6 +29,7 @@ LABELS = {
     "arc_snr": "peak arc S/N",
     "bright_fraction": "fraction of mask > 3σ",
     "border_level": "sky level at the border (e⁻/s)",
+    "noise_lag1": "neighbouring pixels' noise correlation",
 }
 
 

@@ -50,6 +50,14 @@ Poisson noise acts on electrons, so the gain (e⁻/ADU) enters only to convert t
 Poisson on image + sky, sky not added back: sky-subtracted images). ``poisson='gaussian'``
 uses the normal approximation ``I + σ·z`` as lenstronomy's ``noise_for_model`` does
 (fine here: λ ≥ s·T ≈ 73 e⁻ per pixel for the default instrument).
+
+Drizzled images (the HST cutouts: ACS's 0.05″ pixels resampled onto 0.04″) share each
+input pixel's noise between neighbouring output pixels. With
+``Instrument.noise_correlation`` ρ > 0 the noise field is filtered by
+:func:`correlate_noise` (a 3-tap kernel along each axis that keeps every pixel's σ and
+gives neighbours the correlation ρ); ρ = 0 is independent pixels, as lenstronomy draws
+them. A square-kernel drizzle at this pixel ratio gives ρ ≈ 0.36–0.40 for pixfrac 1 and
+0.2–0.35 for pixfrac 0.6–0.8 (``docs/realism.md``).
 """
 
 from __future__ import annotations
@@ -77,6 +85,9 @@ __all__ = [
     "KernelSpectrum",
     "noise_sigma_map",
     "add_noise",
+    "correlate_noise",
+    "noise_kernel_weight",
+    "MAX_NOISE_CORRELATION",
     "DIRECT_MAX_KERNEL",
 ]
 
@@ -384,7 +395,12 @@ class Instrument:
 
     exposure_time : s per exposure; ccd_gain : e⁻/ADU (only for ADU conversion);
     read_noise : e⁻ per exposure; sky_brightness : mag/arcsec²; magnitude_zero_point :
-    mag for 1 e⁻/s; pixel_scale : arcsec; psf_fwhm : arcsec (Gaussian fallback only).
+    mag for 1 e⁻/s; pixel_scale : arcsec; psf_fwhm : arcsec (Gaussian fallback only);
+    noise_correlation : lag-1 correlation of neighbouring pixels' noise along each axis
+    (:func:`correlate_noise`; 0 = independent pixels), or a range ``(low, high)``: then
+    each :func:`add_noise` call draws it uniformly, after its noise, from its own
+    generator (so an image's correlation follows from its noise seed, and its noise
+    field is the one a fixed correlation would filter).
     """
 
     exposure_time: float = 2200.0
@@ -395,6 +411,7 @@ class Instrument:
     num_exposures: int = 1
     pixel_scale: float = PIXEL_SCALE
     psf_fwhm: float = 0.1
+    noise_correlation: float | tuple[float, float] = 0.0
 
     def __post_init__(self) -> None:
         for name in ("exposure_time", "ccd_gain", "pixel_scale", "psf_fwhm"):
@@ -402,6 +419,20 @@ class Instrument:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if not self.read_noise >= 0:
             raise ValueError(f"read_noise must be >= 0 e-, got {self.read_noise!r}")
+        rho = self.noise_correlation
+        bounds = tuple(rho) if isinstance(rho, (tuple, list)) else (rho,)
+        if not (
+            len(bounds) in (1, 2)
+            and all(isinstance(b, (int, float)) and 0 <= b < MAX_NOISE_CORRELATION for b in bounds)
+            and bounds[0] <= bounds[-1]
+        ):
+            raise ValueError(
+                f"noise_correlation must be a number in [0, {MAX_NOISE_CORRELATION:.4f}) "
+                f"(lag-1 correlation of a 3-tap kernel) or a range [low, high] of two such "
+                f"numbers with low <= high, got {rho!r}"
+            )
+        if len(bounds) == 2:
+            object.__setattr__(self, "noise_correlation", tuple(float(b) for b in bounds))
         if (
             isinstance(self.num_exposures, bool)
             or not isinstance(self.num_exposures, int)
@@ -466,12 +497,14 @@ def add_noise(
     instrument: Instrument | None = None,
     poisson: str = "exact",
 ) -> torch.Tensor:
-    """Noisy copy of ``image`` (e⁻/s per pixel, any shape, noise independent per pixel).
+    """Noisy copy of ``image`` (e⁻/s per pixel, any shape).
 
     ``generator``: a ``torch.Generator`` on the image's device, an int seed (a fresh
     generator on that device), or None (global RNG). ``poisson``: 'exact'
-    (``torch.poisson`` on electron counts) or 'gaussian' (normal approximation).
-    Same seed, device and dtype → identical result.
+    (``torch.poisson`` on electron counts) or 'gaussian' (normal approximation). The
+    noise of neighbouring pixels is correlated by the instrument's ``noise_correlation``
+    (:func:`correlate_noise` along the last two axes; a range draws one value per call
+    after the noise). Same seed, device and dtype → identical result.
     """
     if poisson not in ("exact", "gaussian"):
         raise ValueError(f"poisson must be 'exact' or 'gaussian', got {poisson!r}")
@@ -481,10 +514,58 @@ def add_noise(
     t = inst.total_exposure_time
     if poisson == "gaussian":
         z = torch.randn(image.shape, generator=g, dtype=image.dtype, device=image.device)
-        return image + noise_sigma_map(image, inst) * z
+        noise = noise_sigma_map(image, inst) * z
+        return image + correlate_noise(noise, _correlation(inst, g, image.device))
     # torch.poisson draws in the rate's dtype; use float64 so counts ≫ 2^24 stay exact
     lam = ((image.clamp(min=0.0) + inst.sky_per_pixel) * t).to(torch.float64)
     shot = torch.poisson(lam, generator=g) - lam
     z = torch.randn(image.shape, generator=g, dtype=torch.float64, device=image.device)
     read = math.sqrt(inst.num_exposures) * inst.read_noise * z
-    return image + ((shot + read) / t).to(image.dtype)
+    rho = _correlation(inst, g, image.device)
+    return image + correlate_noise((shot + read) / t, rho).to(image.dtype)
+
+
+def _correlation(inst: Instrument, generator, device) -> float:
+    """The instrument's noise correlation, drawn from ``generator`` when it is a range."""
+    rho = inst.noise_correlation
+    if not isinstance(rho, tuple):
+        return float(rho)
+    u = torch.rand((), generator=generator, dtype=torch.float64, device=device)
+    return rho[0] + (rho[1] - rho[0]) * float(u)
+
+
+#: Largest lag-1 correlation of the 3-tap kernel ``(w, 1, w)``: 1/√2, at w = 1/√2.
+MAX_NOISE_CORRELATION = 1.0 / math.sqrt(2.0)
+
+
+def noise_kernel_weight(rho: float) -> float:
+    """Side weight ``w`` of the kernel ``(w, 1, w)`` whose lag-1 correlation
+    ``2w / (1 + 2w²)`` is ``rho`` (the root with w ≤ 1/√2): ``(1 − √(1 − 2ρ²)) / (2ρ)``."""
+    if not 0 <= rho < MAX_NOISE_CORRELATION:
+        raise ValueError(f"noise correlation must be in [0, 1/sqrt(2)), got {rho!r}")
+    return 0.0 if rho == 0 else (1.0 - math.sqrt(1.0 - 2.0 * rho * rho)) / (2.0 * rho)
+
+
+def correlate_noise(noise: torch.Tensor, rho: float) -> torch.Tensor:
+    """Independent pixel noise ``(..., H, W)`` made correlated like a drizzled image's.
+
+    Filters both pixel axes with ``(w, 1, w)/√(1 + 2w²)``, ``w`` from
+    :func:`noise_kernel_weight`: every pixel keeps its variance (at the border the
+    missing tap is dropped and the other two renormalised), neighbours along an axis
+    correlate by ``rho``, diagonal neighbours by ``rho²``, pixels two apart by
+    ``w²/(1 + 2w²)``. ``rho = 0`` returns ``noise`` itself.
+    """
+    if rho == 0:
+        return noise
+    w = noise_kernel_weight(rho)
+    for dim in (noise.ndim - 1, noise.ndim - 2):
+        n = noise.shape[dim]
+        pad = torch.zeros_like(noise.narrow(dim, 0, 1))
+        left = torch.cat([pad, noise.narrow(dim, 0, n - 1)], dim)
+        right = torch.cat([noise.narrow(dim, 1, n - 1), pad], dim)
+        idx = torch.arange(n, device=noise.device)
+        taps = 2 - (idx == 0).to(noise.dtype) - (idx == n - 1).to(noise.dtype)
+        shape = [1] * noise.ndim
+        shape[dim] = n
+        noise = (noise + w * (left + right)) * torch.rsqrt(1.0 + w * w * taps).reshape(shape)
+    return noise

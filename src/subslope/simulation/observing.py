@@ -20,7 +20,8 @@ __all__ = ["build_instrument", "build_psf", "fit_input_light_of", "fitted_light_
 
 
 def build_instrument(config: Mapping[str, Any]) -> Instrument:
-    """The detector of ``instrument`` (exposure, gain, read noise, sky, zero point)."""
+    """The detector of ``instrument`` (exposure, gain, read noise, sky, zero point, the
+    drizzled noise's pixel correlation)."""
     inst = config["instrument"]
     return Instrument(
         exposure_time=float(inst["exposure_time"]),
@@ -31,6 +32,11 @@ def build_instrument(config: Mapping[str, Any]) -> Instrument:
         num_exposures=int(inst["num_exposures"]),
         pixel_scale=float(inst["pixel_scale"]),
         psf_fwhm=float(inst["psf"]["fwhm"]),
+        noise_correlation=(
+            tuple(map(float, inst["noise_correlation"]))
+            if isinstance(inst["noise_correlation"], (list, tuple))
+            else float(inst["noise_correlation"])
+        ),
     )
 
 

@@ -21,7 +21,7 @@ from subslope.stages.calibrate import load_thresholds, threshold_for
 from subslope.stages.cdm_grid import cdm_band
 from subslope.stats import calibration, intervals
 
-__all__ = ["analyze_hst"]
+__all__ = ["analyze_hst", "hst_profiles"]
 
 log = logging.getLogger(__name__)
 
@@ -52,28 +52,28 @@ def analyze_hst(
 ):
     """Profiles, intervals and figures 5–6 of the real HST lenses.
 
-    Cutouts get the estimator's input transform (lens light fitted as in the shards,
-    ``config``'s PSF and detector), whitening and 1.5 θ_E mask (θ_E catalogued, centre of
-    :func:`find_lens_centre`). Intervals use τ_1, the stack of ``combine`` (default all)
-    τ_N. Writes ``out_h5`` (names, log_ratio, gammas, theta_e, lens_x, lens_y, combined),
+    Profiles of :func:`hst_profiles`; intervals use τ_1, the stack of ``combine``
+    (default all) τ_N. Writes ``out_h5`` (names, log_ratio, gammas, theta_e, lens_x, lens_y, combined),
     ``out_csv`` (a row per system and a ``combined`` row: mle, lower, upper, threshold,
     threshold_n, flags) and the figures (figure 6's a = 1 bands from ``cdm_csv``; columns
     ``inside_domain``, ``outside_domain`` from ``domain_csv``).
     """
     import pandas as pd
 
-    names, theta_e, lx, ly, images = _lenses(hst_folder, pixel_scale, lens_centre)
-    combine = list(names) if combine is None else list(combine)
-    unknown = sorted((set(combine) | set(show) | set(highlight)) - set(names))
-    if unknown:
-        raise ValueError(f"hst: unknown system(s) {unknown}; catalogued: {names}")
-    prof, meta = _profiles(
-        model_path, (images, theta_e, lx, ly), gammas, batch_size, device, pixel_scale, config
+    names, geometry, prof, meta = hst_profiles(
+        model_path,
+        hst_folder,
+        gammas,
+        lens_centre=lens_centre,
+        pixel_scale=pixel_scale,
+        batch_size=batch_size,
+        device=device,
+        config=config,
     )
+    combine = _known_systems(names, combine, show, highlight)
     g = np.asarray(gammas, dtype=np.float64)
     thr = load_thresholds(thresholds_json)
     tau1, n1 = threshold_for(thr, 1)
-    geometry = {"lens_x": lx, "lens_y": ly, "theta_e": theta_e}
     rows = [
         _row(name, prof[k], g, tau1, 1, n1, {key: v[k] for key, v in geometry.items()})
         for k, name in enumerate(names)
@@ -106,6 +106,45 @@ def analyze_hst(
         n_images=len(idx),
     )
     return table
+
+
+def hst_profiles(
+    model_path,
+    hst_folder,
+    gammas,
+    *,
+    lens_centre: Mapping[str, Any] | None = None,
+    pixel_scale: float = PIXEL_SCALE,
+    batch_size: int = 16,
+    device: str = "auto",
+    config: Mapping[str, Any] | None = None,
+):
+    """ln r̂ of the HST cutouts on ``gammas`` with the estimator's own pre-processing:
+    its input transform (lens light fitted as in the shards, ``config``'s PSF and
+    detector), whitening and 1.5 θ_E mask (θ_E catalogued, centre of
+    :func:`find_lens_centre`).
+
+    Returns ``(names, geometry, log_ratio, meta)``: the catalogue's system names, their
+    ``lens_x, lens_y`` (arcsec, :func:`find_lens_centre`) and catalogued ``theta_e``,
+    the ``(systems, len(gammas))`` profiles and the estimator's metadata. ``config`` (PSF
+    and detector of the lens-light fit) is needed by estimators whose inputs subtract
+    the fitted lens light.
+    """
+    names, theta_e, lx, ly, images = _lenses(hst_folder, pixel_scale, lens_centre)
+    prof, meta = _profiles(
+        model_path, (images, theta_e, lx, ly), gammas, batch_size, device, pixel_scale, config
+    )
+    return names, {"lens_x": lx, "lens_y": ly, "theta_e": theta_e}, prof, meta
+
+
+def _known_systems(names, combine, show, highlight) -> list[str]:
+    """The systems to stack (``combine``, default all), after checking that every system
+    named in ``combine``, ``show`` and ``highlight`` is catalogued."""
+    combine = list(names) if combine is None else list(combine)
+    unknown = sorted((set(combine) | set(show) | set(highlight)) - set(names))
+    if unknown:
+        raise ValueError(f"hst: unknown system(s) {unknown}; catalogued: {names}")
+    return combine
 
 
 def _with_domain_flags(table, domain_csv):

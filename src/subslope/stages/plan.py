@@ -134,6 +134,7 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
     """Problems of a schema-valid ``config`` that only its scenes, data registry and data
     catalogue show, each naming the key and what is allowed: every scene must build
     (:class:`subslope.simulation.scenes.Scene`), the COSMOS split fractions must sum to 1,
+    a noise-correlation range must be ordered,
     every COSMOS folder and the empirical PSF file must be registered data or exist, and
     the HST systems
     named in ``hst`` must be in the catalogue (when the catalogue is at hand). Called by
@@ -156,6 +157,12 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
             "config keys simulation.sources.split.train/validation/test = "
             f"{split['train']}/{split['validation']}/{split['test']} must sum to 1 "
             f"(they sum to {total:g})"
+        )
+    rho = config["instrument"]["noise_correlation"]
+    if isinstance(rho, list) and rho[0] > rho[1]:
+        problems.append(
+            f"config key instrument.noise_correlation = {rho}: a range [low, high] needs "
+            "low <= high"
         )
     problems += _cosmos_folder_problems(config)
     problems += _psf_problems(config)
