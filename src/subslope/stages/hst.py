@@ -53,10 +53,10 @@ def analyze_hst(
     """Profiles, intervals and figures 5–6 of the real HST lenses.
 
     Profiles of :func:`hst_profiles`; intervals use τ_1, the stack of ``combine``
-    (default all) τ_N. Writes ``out_h5`` (names, log_ratio, gammas, theta_e, lens_x, lens_y, combined),
-    ``out_csv`` (a row per system and a ``combined`` row: mle, lower, upper, threshold,
-    threshold_n, flags) and the figures (figure 6's a = 1 bands from ``cdm_csv``; columns
-    ``inside_domain``, ``outside_domain`` from ``domain_csv``).
+    (default all) τ_N. Writes ``out_h5`` (names, log_ratio, gammas, theta_e, lens_x,
+    lens_y, combined), ``out_csv`` (a row per system and a ``combined`` row: mle, lower,
+    upper, threshold, threshold_n, flags) and the figures (figure 6's a = 1 bands from
+    ``cdm_csv``; columns ``inside_domain``, ``outside_domain`` from ``domain_csv``).
     """
     import pandas as pd
 
