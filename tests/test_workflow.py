@@ -382,13 +382,14 @@ def test_hst_profiles_are_the_ones_the_workflow_wrote(tiny_run, campaign):
     from subslope.stages.hst import hst_profiles
 
     config = cfgmod.load(campaign / "config" / "tiny.yaml", env=False)
+    config["data"]["resources_dir"] = str(campaign / config["data"]["resources_dir"])
     with h5py.File(tiny_run / "analyze_hst" / "profiles.h5") as fh:
         written, gammas = fh["log_ratio"][()], fh["gammas"][()]
         names = [n.decode() for n in fh["names"][()]]
         centres = fh["lens_x"][()], fh["lens_y"][()]
     got, geometry, prof, meta = hst_profiles(
         tiny_run / "train_estimator" / "model.pt",
-        campaign / config["data"]["resources_dir"] / "hst",
+        Path(config["data"]["resources_dir"]) / "hst",
         gammas,
         lens_centre=config["hst"]["lens_centre"],
         pixel_scale=config["instrument"]["pixel_scale"],
