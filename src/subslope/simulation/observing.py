@@ -32,11 +32,7 @@ def build_instrument(config: Mapping[str, Any]) -> Instrument:
         num_exposures=int(inst["num_exposures"]),
         pixel_scale=float(inst["pixel_scale"]),
         psf_fwhm=float(inst["psf"]["fwhm"]),
-        noise_correlation=(
-            tuple(map(float, inst["noise_correlation"]))
-            if isinstance(inst["noise_correlation"], (list, tuple))
-            else float(inst["noise_correlation"])
-        ),
+        noise_correlation=inst["noise_correlation"],  # a range becomes a tuple there
     )
 
 
