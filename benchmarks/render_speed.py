@@ -24,10 +24,11 @@ import torch
 from subslope.physics.cosmology import epl_amp_from_m200
 from subslope.physics.instrument import gaussian_psf, load_empirical_psf, noise_sigma_map
 from subslope.render import pipeline as R
-from subslope.simulation import los as los_mod
+from subslope.simulation import los_halos as los_mod
 from subslope.simulation import scenes
 from subslope.simulation import subhalos as S
 from subslope.simulation.macro import sample_macro
+from subslope.validation.scenes import image_errors
 
 SHARED = Path(os.environ.get("SUBSLOPE_SHARED", "/work/shared")) / "data"
 
@@ -132,15 +133,6 @@ def reference_settings(settings: R.RenderSettings) -> R.RenderSettings:
         chunk_members=64,
         population="direct",
     )
-
-
-def image_errors(img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
-    """(max |img - ref| / σ_noise(ref), ||img - ref||_2 / ||ref||_2), worst over the batch."""
-    img, ref = img.to(torch.float64), ref.to(torch.float64)
-    d = img - ref
-    max_sigma = float((d.abs() / noise_sigma_map(ref)).amax())
-    rel = float((d.flatten(1).norm(dim=1) / ref.flatten(1).norm(dim=1)).max())
-    return max_sigma, rel
 
 
 def gamma_demo(out_dir: str = "/tmp", seed: int = 3) -> None:

@@ -17,7 +17,7 @@ import time
 import numpy as np
 import torch
 
-from subslope.figures.data import stiff_cases_figure
+from subslope.figures.gallery import stiff_cases_figure
 from subslope.render import pipeline as R
 from subslope.validation import stiff as D
 from subslope.validation.lenstronomy import lenstronomy_model

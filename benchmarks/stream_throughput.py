@@ -35,8 +35,8 @@ from _common import machine_info  # noqa: E402
 from subslope import config as C  # noqa: E402
 from subslope.devices import pick_device  # noqa: E402
 from subslope.nre import NRELoss, ShardBatches, build_model, make_loader  # noqa: E402
+from subslope.plan import shard_job_config  # noqa: E402
 from subslope.simulation.shard import simulate_shard  # noqa: E402
-from subslope.stages.plan import shard_job_config  # noqa: E402
 from subslope.stages.simulate import runnable_config  # noqa: E402
 from subslope.stages.train import training_section, training_stream  # noqa: E402
 

@@ -14,7 +14,7 @@
 #    the training job once while it runs on SLURM (the profile's retries resubmit it and
 #    it resumes from its checkpoint), checks that SLURM ran as many jobs as
 #    `subslope cluster-jobs` counts in the dry run (plus the resubmission), and compares
-#    the two results folders with benchmarks/compare_runs.py.
+#    the two results folders with `subslope compare-runs`.
 #
 # Knobs: SLURM_CI_DIR (work folder, default a new temporary one), SLURM_CI_KEEP=1 keeps it.
 set -euo pipefail
@@ -176,7 +176,7 @@ expected=$(( predicted + $([ -f "$WORK/cancelled" ] && echo 1 || echo 0) ))
 say "SLURM ran $submitted jobs; the dry run's count (and a resubmission) gives $expected"
 [ "$submitted" = "$expected" ] || { say "job count differs from the dry run's"; exit 1; }
 
-"$PY" "$REPO/benchmarks/compare_runs.py" "$WORK/local/results" "$WORK/slurm/results" \
+"$PY" -m subslope.cli compare-runs "$WORK/local/results" "$WORK/slurm/results" \
     >"$WORK/compare.log" 2>&1 || {
     cat "$WORK/compare.log"; say "SLURM results differ from the local run's"; exit 1
 }

@@ -9,29 +9,35 @@ EPL populations; here the scenes come from the package's own samplers
 population path) with NFW line-of-sight planes, the stiff γ → 1 end of the training
 prior, and supersampling 2, so a later speed-up of any of these paths cannot silently
 lose accuracy. The ``reference`` test compares the defaults with lenstronomy 1.14.2 on
-small multi-plane scenes (benchmarks/_common.py builds the same model in lenstronomy).
+small multi-plane scenes (:func:`subslope.validation.lenstronomy.lenstronomy_model`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import _common as C  # noqa: E402
-
-from subslope.render import pipeline as R  # noqa: E402
-from subslope.validation.lenstronomy import lenstronomy_model  # noqa: E402
+from subslope.physics.instrument import gaussian_psf, load_empirical_psf
+from subslope.render import pipeline as R
+from subslope.validation import scenes as C
+from subslope.validation.lenstronomy import lenstronomy_model
+from tests.conftest import shared_data_dir
 
 MAX_SIGMA, REL_L2 = 0.1, 1e-3
 DEFAULT = R.RenderSettings(device="cpu")
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _psf() -> torch.Tensor:
+    """The empirical F814W PSF of the data folder, or a Gaussian where it is missing."""
+    path = shared_data_dir() / "psf" / "emp_psf_f814w.fits"
+    if path.is_file():
+        return torch.as_tensor(load_empirical_psf(path))
+    return torch.as_tensor(gaussian_psf(0.1, 0.04))
 
 
 def _reference(s: R.RenderSettings) -> R.RenderSettings:
@@ -62,7 +68,7 @@ SCENES = {
 @pytest.mark.parametrize("key", list(SCENES))
 def test_default_within_budget(key):
     kind, n_sub, los, gamma, seed, over = SCENES[key]
-    batch = C.make_scene(kind, 1, n_sub, los, seed=seed, gamma_label=gamma, delta_los=1.5)
+    batch = C.make_scene(_psf(), kind, 1, n_sub, los, seed=seed, gamma_label=gamma, delta_los=1.5)
     s = dataclasses.replace(DEFAULT, **over)
     img, ref = batch.render(s), batch.render(_reference(s))
     assert torch.isfinite(img).all()
@@ -79,7 +85,14 @@ def test_default_vs_lenstronomy_multiplane(kind, n_sub):
 
     warnings.filterwarnings("ignore", message="Cosmology is provided")
     batch = C.make_scene(
-        kind, 1, n_sub, True, seed=21, gamma_label=2.0 if kind == "train" else None, delta_los=1.5
+        _psf(),
+        kind,
+        1,
+        n_sub,
+        True,
+        seed=21,
+        gamma_label=2.0 if kind == "train" else None,
+        delta_los=1.5,
     )
     model = lenstronomy_model(batch.macro, batch.psf, 0, subhalos=batch.subhalos, los=batch.los)
     assert model.n_planes > 1

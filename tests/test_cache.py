@@ -1,4 +1,4 @@
-"""The cache of finished results (subslope.io.shard_cache, subslope.stages.cache): entries of
+"""The cache of finished results (subslope.io.shard_cache, subslope.campaigns.cache): entries of
 files with their manifest, the lens-light fits' key, and `subslope cache du` / `prune`
 on a cache built from the tiny campaign's own shards."""
 
@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from subslope import config as cfgmod
+from subslope.campaigns.cache import cache_usage, campaigns_in_use, prune_cache
 from subslope.cli import main
 from subslope.io.shard_cache import (
     MANIFEST,
@@ -20,9 +21,8 @@ from subslope.io.shard_cache import (
     put_files_in_cache,
     take_files_from_cache,
 )
-from subslope.stages.cache import cache_usage, campaigns_in_use, prune_cache
+from subslope.plan import shard_job_config
 from subslope.stages.domain import LENS_LIGHT_FILES, lens_light_fit_key
-from subslope.stages.plan import shard_job_config
 from subslope.stages.simulate import shard_cache_key
 
 REPO = Path(__file__).resolve().parents[1]

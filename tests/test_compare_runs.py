@@ -1,24 +1,18 @@
-"""benchmarks/compare_runs.py: the check that a refactoring changed no number finds a
-single changed value, and ignores only what it documents."""
+"""subslope.campaigns.compare (``subslope compare-runs``): the check that a refactoring
+changed no number finds a single changed value, and ignores only what it documents."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import h5py
 import numpy as np
 
-from tests.conftest import REPO_ROOT
+from subslope.campaigns import compare
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location(
-        "compare_runs", REPO_ROOT / "benchmarks" / "compare_runs.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return compare
 
 
 def _results(root, value=1.0, version="a", digest="x"):
@@ -56,3 +50,24 @@ def test_a_changed_summary_number_and_a_missing_file_are_found(tmp_path):
     (b / "summary.md").write_text("# summary\n## HST measurement\nγ = 2.001 (68% [1.9, 2.1])\n")
     (b / "w.json").unlink()
     assert cr.compare_trees(a, b) == 2
+
+
+class _Payload:
+    """Pickles to a call that writes a marker file: code a model file must never run."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_a_model_file_with_a_pickle_payload_runs_no_code(tmp_path):
+    import torch
+
+    marker = tmp_path / "ran"
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        torch.save({"model_state": {}, "extra": _Payload(marker)}, tmp_path / name / "model.pt")
+    assert compare.compare_trees(tmp_path / "a", tmp_path / "b") == 1
+    assert not marker.exists()

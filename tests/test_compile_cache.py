@@ -49,7 +49,7 @@ def _run(folder, *extra: str) -> dict:
     env["OMP_NUM_THREADS"] = "1"
     command = [sys.executable, "-c", _JOB, str(folder), *extra]
     proc = subprocess.run(command, capture_output=True, text=True, env=env, check=True)
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    return {**json.loads(proc.stdout.strip().splitlines()[-1]), "stderr": proc.stderr}
 
 
 def test_the_compile_cache_is_set_once_and_the_environment_wins(tmp_path, monkeypatch):
@@ -94,6 +94,24 @@ def test_kernels_loaded_without_tracing_give_the_same_numbers(tmp_path):
     assert second["sums"] == first["sums"]
     assert all(map(math.isfinite, first["sums"]))
     assert first["eager"] == second["eager"] == []
+
+
+def test_tracing_with_kept_graphs_prints_no_guard_notices(tmp_path):
+    """torch warns once per guard it leaves out of a kept graph (hundreds per job): the
+    filter of :func:`subslope.render.kernels.keep_traced_graphs` drops exactly those."""
+    import logging
+
+    from subslope.render.kernels import PRECOMPILE_GUARD_NOTICE, drop_precompile_guard_notices
+
+    traced = _run(tmp_path / "cc", "far,few")
+    assert "guard on" not in traced["stderr"], traced["stderr"][-2000:]
+    assert traced["eager"] == []
+
+    def record(msg):
+        return logging.LogRecord("torch._dynamo.guards", logging.WARNING, "", 0, msg, (), None)
+
+    assert not drop_precompile_guard_notices(record("%s " + PRECOMPILE_GUARD_NOTICE))
+    assert drop_precompile_guard_notices(record("a real warning"))
 
 
 def test_graphs_of_several_processes_and_new_ones_live_side_by_side(tmp_path):

@@ -446,7 +446,7 @@ def test_plan_problems_seen_before_any_job(tmp_path, data_dir, override, match):
     """What only the scenes, the registry and the HST catalogue show is refused by
     `subslope validate-config` (and by the workflow when it loads), naming the key."""
     from subslope.cli import main
-    from subslope.stages.plan import plan_problems
+    from subslope.plan import plan_problems
 
     base = cfg.validate({"data": {"mirror": str(data_dir), "resources_dir": str(tmp_path)}})
 

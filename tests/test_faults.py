@@ -642,7 +642,7 @@ def test_slurm_profile_avoids_the_plugin_failure_modes():
 
 def test_gpu_request_on_a_cluster_without_gpus():
     from subslope import config as cfg
-    from subslope.stages.plan import slurm_gpu_problems
+    from subslope.plan import slurm_gpu_problems
 
     config = cfg.load(TINY_YAML, env=False)
     assert slurm_gpu_problems(config, gres="(null)\n") == []  # tiny asks for no GPU

@@ -1,4 +1,4 @@
-"""The halo-free null test (subslope.stages.halo_free): the sheets-only render, the label
+"""The halo-free null test (subslope.stages.null_tests.halo_free): the sheets-only render, the label
 trend and its bounds, the bias by N_sub, and the verdict on estimators that do and do
 not read γ from something other than the halos."""
 
@@ -12,7 +12,7 @@ import torch
 
 from subslope.io.ratio_profiles import write_profiles
 from subslope.physics.grid import pixel_grid
-from subslope.stages.halo_free import (
+from subslope.stages.null_tests.halo_free import (
     label_trend,
     nsub_bias,
     partial_spearman,
@@ -99,7 +99,7 @@ def test_the_verdict_fails_an_estimator_that_reads_the_label_without_halos():
 
 
 def test_halo_free_null_refuses_too_few_sets(tmp_path):
-    from subslope.stages.halo_free import halo_free_null
+    from subslope.stages.null_tests.halo_free import halo_free_null
 
     g = gamma_grid()
     path = write_profiles(

@@ -24,7 +24,7 @@ LAYERS = {
     "ragged": 0,
     "devices": 0,
     "logs": 0,
-    "sources": 0,
+    "digests": 0,
     "physics": 1,
     "stats": 1,
     "render": 2,
@@ -33,8 +33,10 @@ LAYERS = {
     "nre": 3,
     "validation": 4,
     "figures": 5,
-    "stages": 6,
-    "cli": 7,
+    "plan": 6,
+    "stages": 7,
+    "campaigns": 8,
+    "cli": 9,
 }
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 80
@@ -165,12 +167,31 @@ def _private_uses(path: Path) -> list[str]:
     return out
 
 
-def test_tests_and_benchmarks_use_public_names_only():
-    files = sorted((REPO_ROOT / "tests").rglob("*.py")) + sorted(
-        (REPO_ROOT / "benchmarks").rglob("*.py")
-    )
+def test_tests_benchmarks_and_studies_use_public_names_only():
+    files = [
+        p for d in ("tests", "benchmarks", "studies") for p in sorted((REPO_ROOT / d).rglob("*.py"))
+    ]
     uses = [line for path in files for line in _private_uses(path)]
     assert not uses, "\n".join(uses)
+
+
+def test_tests_import_nothing_from_benchmarks_or_studies():
+    """Tests exercise the package: a helper that a test and a benchmark share lives in
+    ``subslope`` (e.g. :mod:`subslope.validation.scenes`), not in a script folder."""
+    scripts = {p.stem for d in ("benchmarks", "studies") for p in (REPO_ROOT / d).glob("*.py")}
+    bad = []
+    for path in sorted((REPO_ROOT / "tests").rglob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        if re.search(r"sys\.path\.(insert|append)\(.*(benchmarks|studies)", text):
+            bad.append(f"{path.name}: puts benchmarks/ or studies/ on sys.path")
+        for node in ast.walk(ast.parse(text)):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [node.module or ""]
+            bad += [f"{path.name}:{node.lineno} imports {n}" for n in names if n in scripts]
+    assert not bad, "\n".join(bad)
 
 
 def test_docs_module_map_matches_the_package():
@@ -224,7 +245,7 @@ def test_planning_imports_no_heavy_library():
     """What the workflow imports to plan a run (``snakemake -n``) needs no torch, h5py,
     matplotlib, astropy or colossus."""
     code = (
-        "import sys, subslope.config, subslope.stages.plan, subslope.stages.train, "
+        "import sys, subslope.config, subslope.plan, subslope.stages.train, "
         "subslope.io.resources, "
         "subslope.simulation.scenes, subslope\n"
         "heavy = sorted({m.split('.')[0] for m in sys.modules} & "
@@ -247,7 +268,8 @@ def test_stage_flag_rule_file_and_module_share_a_name(flag):
 
     assert flag in STAGE_NEEDS
     assert (REPO_ROOT / "workflow" / "rules" / f"{flag}.smk").is_file()
-    assert (SRC / "stages" / f"{flag}.py").is_file()
+    module = SRC / "stages" / flag
+    assert module.with_suffix(".py").is_file() or (module / "__init__.py").is_file()
 
 
 def test_subhalo_profiles_of_schema_scenes_and_registry_agree():

@@ -1,4 +1,4 @@
-"""Tests of the line-of-sight halo sampler (subslope.simulation.los, DG19 model)."""
+"""Tests of the line-of-sight halo sampler (subslope.simulation.los_halos, DG19 model)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,14 @@ from scipy import stats
 from scipy.special import gamma as gamma_fn
 
 from subslope.physics import cosmology
-from subslope.simulation import los, los_model
+from subslope.simulation import los_cone, los_halos
 
 Z_L, Z_S = 0.2, 0.6
 
 
 @pytest.fixture(scope="module")
 def host() -> float:
-    return float(los_model.host_m200_from_epl(1.1, 2.0, Z_L, Z_S))
+    return float(los_cone.host_m200_from_epl(1.1, 2.0, Z_L, Z_S))
 
 
 def _astropy_comoving(z):
@@ -28,43 +28,43 @@ def _astropy_comoving(z):
 
 # ---------------------------------------------------------------------------- slices
 def test_slice_grid_follows_reference():
-    z_lo, z_mid = los_model.slice_redshifts(0.6, dz=0.01)
+    z_lo, z_mid = los_cone.slice_redshifts(0.6, dz=0.01)
     assert z_lo.dtype == np.float64
     assert len(z_lo) == 58
     np.testing.assert_allclose(z_lo[[0, -1]], [0.01, 0.58], atol=1e-12)
     np.testing.assert_allclose(z_mid - z_lo, 0.005, atol=1e-12)
     assert np.all(z_lo + 0.01 < 0.6)
     # off-grid source: last lower edge is the largest grid value < z_s - dz
-    z_lo, _ = los_model.slice_redshifts(0.637)
+    z_lo, _ = los_cone.slice_redshifts(0.637)
     assert z_lo[-1] == pytest.approx(0.62)
-    assert los_model.slice_redshifts(0.015)[0].size == 0
+    assert los_cone.slice_redshifts(0.015)[0].size == 0
 
 
 # ---------------------------------------------------------------------------- cone
 def test_cone_radius_front_and_back():
     z = np.linspace(0.01, Z_S, 400)
-    r = los_model.cone_radius_arcsec(z, Z_L, Z_S, cone_diameter=4.0)
+    r = los_cone.cone_radius_arcsec(z, Z_L, Z_S, cone_diameter=4.0)
     front = z <= Z_L
     assert np.all(r[front] == 2.0)
-    assert los_model.cone_radius_arcsec(Z_L, Z_L, Z_S) == 2.0
+    assert los_cone.cone_radius_arcsec(Z_L, Z_L, Z_S) == 2.0
     back = r[~front]
     assert np.all(np.diff(back) < 0) and back[0] < 2.0
     assert np.all(r > 0)
-    assert los_model.cone_radius_arcsec(Z_S, Z_L, Z_S) == pytest.approx(2.0 * (1 - 0.8), rel=1e-9)
+    assert los_cone.cone_radius_arcsec(Z_S, Z_L, Z_S) == pytest.approx(2.0 * (1 - 0.8), rel=1e-9)
     # the shrink factor at one redshift against independent (astropy) distances
     zq = 0.4
     d_l, d_s, d_z = _astropy_comoving([Z_L, Z_S, zq])
     expect = 2.0 * (1 - 0.8 * d_s * (d_z - d_l) / ((d_s - d_l) * d_z))
-    assert los_model.cone_radius_arcsec(zq, Z_L, Z_S) == pytest.approx(expect, rel=1e-4)
+    assert los_cone.cone_radius_arcsec(zq, Z_L, Z_S) == pytest.approx(expect, rel=1e-4)
     # opening factor 0 -> a plain cylinder in angle
-    assert np.all(los_model.cone_radius_arcsec(z, Z_L, Z_S, opening_factor=0.0) == 2.0)
+    assert np.all(los_cone.cone_radius_arcsec(z, Z_L, Z_S, opening_factor=0.0) == 2.0)
 
 
 def test_slice_volume_against_astropy():
-    cfg = los.LosConfig()
-    v = los_model.slice_volumes(Z_L, Z_S, cfg)
-    z_lo, z_mid = los_model.slice_redshifts(Z_S)
-    theta = los_model.cone_radius_arcsec(z_mid, Z_L, Z_S) * math.pi / 648000
+    cfg = los_halos.LosConfig()
+    v = los_cone.slice_volumes(Z_L, Z_S, cfg)
+    z_lo, z_mid = los_cone.slice_redshifts(Z_S)
+    theta = los_cone.cone_radius_arcsec(z_mid, Z_L, Z_S) * math.pi / 648000
     d_lo, d_mid, d_hi = (_astropy_comoving(z) for z in (z_lo, z_mid, z_lo + 0.01))
     np.testing.assert_allclose(v, np.pi * (d_mid * theta) ** 2 * (d_hi - d_lo), rtol=2e-4)
 
@@ -74,7 +74,7 @@ def test_sheth_tormen_units_against_independent_formula():
     """dn/dM rebuilt from σ(R) by hand; catches h-factor and ln/lin mistakes."""
     from colossus.lss import peaks
 
-    cosmo = los_model.colossus_cosmology()
+    cosmo = los_cone.colossus_cosmology()
     h = cosmo.h
     m = np.logspace(7, 10, 7)
     for z in (0.05, 0.4):
@@ -85,18 +85,18 @@ def test_sheth_tormen_units_against_independent_formula():
         f = 0.3222 * np.sqrt(2 / np.pi) * (1 + nu2**-0.3) * np.sqrt(nu2) * np.exp(-nu2 / 2)
         rho_m0 = cosmo.rho_m(0.0) * 1e9 * h**2  # comoving M☉/Mpc³
         expect = -f * rho_m0 / m**2 * dlns_dlnr / 3.0
-        np.testing.assert_allclose(los_model.sheth_tormen_dndm(m, z), expect, rtol=1e-3)
+        np.testing.assert_allclose(los_cone.sheth_tormen_dndm(m, z), expect, rtol=1e-3)
     # local slope in this range is close to the familiar ~ -1.9
-    dn = los_model.sheth_tormen_dndm(np.array([1e7, 1e10]), 0.2)
+    dn = los_cone.sheth_tormen_dndm(np.array([1e7, 1e10]), 0.2)
     slope = np.log(dn[1] / dn[0]) / np.log(1e3)
     assert -2.0 < slope < -1.8
 
 
 def test_mass_function_integral_matches_fine_quadrature():
     m = np.logspace(7, 10, 20001)
-    dn = los_model.sheth_tormen_dndm(m, 0.3)
+    dn = los_cone.sheth_tormen_dndm(m, 0.3)
     expect = np.sum(0.5 * (dn[1:] + dn[:-1]) * np.diff(m))
-    assert los_model.mass_function_integral(0.3)[0] == pytest.approx(expect, rel=1e-5)
+    assert los_cone.mass_function_integral(0.3)[0] == pytest.approx(expect, rel=1e-5)
 
 
 # ---------------------------------------------------------------------------- host mass
@@ -114,36 +114,36 @@ def test_host_mass_inverts_epl_relation(gamma):
     for m in (3e11, 1e13):
         amp = _epl_amp(m, gamma, Z_L, Z_S)
         theta_e = amp ** (1 / (gamma - 1))
-        assert los_model.host_m200_from_epl(theta_e, gamma, Z_L, Z_S) == pytest.approx(m, rel=1e-9)
+        assert los_cone.host_m200_from_epl(theta_e, gamma, Z_L, Z_S) == pytest.approx(m, rel=1e-9)
 
 
 def test_host_mass_typical_value_and_vectorised():
-    m = los_model.host_m200_from_epl(np.array([0.9, 1.1, 1.3]), 2.0, Z_L, Z_S)
+    m = los_cone.host_m200_from_epl(np.array([0.9, 1.1, 1.3]), 2.0, Z_L, Z_S)
     assert m.shape == (3,) and np.all(np.diff(m) > 0)
     assert 5e12 < m[1] < 3e13  # SIS-like 1.1″ lens at z = 0.2: a group-scale host
 
 
 # ---------------------------------------------------------------------------- two-halo term
 def test_two_halo_boost_only_near_lens(host):
-    z_lo, _ = los_model.slice_redshifts(Z_S)
-    b = los_model.two_halo_boost(z_lo, Z_L, host)
+    z_lo, _ = los_cone.slice_redshifts(Z_S)
+    b = los_cone.two_halo_boost(z_lo, Z_L, host)
     assert np.all(b >= 1.0)
-    d = los_model.comoving_distance
+    d = los_cone.comoving_distance
     nearest = np.abs(d(np.clip(Z_L, z_lo, z_lo + 0.01)) - d(Z_L))
     assert np.all(b[nearest >= 10.0] == 1.0)
     inside = nearest < 10.0
     assert inside.sum() >= 1 and np.all(b[inside] > 1.0)
     # a lens in the middle of a slice: only that slice is boosted (slices ~40 Mpc thick)
-    b_mid = los_model.two_halo_boost(z_lo, 0.205, host)
+    b_mid = los_cone.two_halo_boost(z_lo, 0.205, host)
     assert np.flatnonzero(b_mid > 1).tolist() == [np.argmin(np.abs(z_lo - 0.2))]
 
 
 def test_two_halo_boost_value_and_knobs(host):
     from colossus.lss import bias
 
-    cosmo = los_model.colossus_cosmology()
+    cosmo = los_cone.colossus_cosmology()
     z_lo = np.array([0.2])
-    b = los_model.two_halo_boost(z_lo, 0.205, host, r_min=0.5, n_quad=100)[0]
+    b = los_cone.two_halo_boost(z_lo, 0.205, host, r_min=0.5, n_quad=100)[0]
     zq = np.linspace(0.2, 0.21, 100)
     r = np.abs(_astropy_comoving(zq) - _astropy_comoving(0.205))
     r = r[r > 0.5]
@@ -152,42 +152,44 @@ def test_two_halo_boost_value_and_knobs(host):
     assert b == pytest.approx(expect, rel=2e-3)
     assert b_host > 1  # a 1e13 M☉ host is biased
     # ξ falls with r: excluding more of the centre lowers the boost
-    assert los_model.two_halo_boost(z_lo, 0.205, host, r_min=5.0)[0] < b
+    assert los_cone.two_halo_boost(z_lo, 0.205, host, r_min=5.0)[0] < b
     # a heavier host is more biased
-    assert los_model.two_halo_boost(z_lo, 0.205, 10 * host)[0] > b
+    assert los_cone.two_halo_boost(z_lo, 0.205, 10 * host)[0] > b
     # r_max shorter than the distance to the slice -> no boost
     far = np.array([0.22])
-    assert los_model.two_halo_boost(far, 0.205, host, r_max=10.0)[0] == 1.0
-    assert los_model.two_halo_boost(far, 0.205, host, r_max=100.0)[0] > 1.0
+    assert los_cone.two_halo_boost(far, 0.205, host, r_max=10.0)[0] == 1.0
+    assert los_cone.two_halo_boost(far, 0.205, host, r_max=100.0)[0] > 1.0
 
 
 def test_expected_counts_two_halo_switch(host):
-    on = los.expected_counts(Z_L, Z_S, host, 1.0, los.LosConfig(two_halo=True))
-    off = los.expected_counts(Z_L, Z_S, host, 1.0, los.LosConfig(two_halo=False))
-    z_lo, _ = los_model.slice_redshifts(Z_S)
+    on = los_halos.expected_counts(Z_L, Z_S, host, 1.0, los_halos.LosConfig(two_halo=True))
+    off = los_halos.expected_counts(Z_L, Z_S, host, 1.0, los_halos.LosConfig(two_halo=False))
+    z_lo, _ = los_cone.slice_redshifts(Z_S)
     ratio = on / off
-    np.testing.assert_allclose(ratio, los_model.two_halo_boost(z_lo, Z_L, host), rtol=1e-12)
+    np.testing.assert_allclose(ratio, los_cone.two_halo_boost(z_lo, Z_L, host), rtol=1e-12)
     assert 1 <= np.sum(ratio > 1) <= 2
 
 
 # ---------------------------------------------------------------------------- counts
 def test_expected_counts_linear_in_delta_and_zero(host):
-    one = los.expected_counts(Z_L, Z_S, host, 1.0)
-    assert one.shape == los_model.slice_redshifts(Z_S)[0].shape and np.all(one > 0)
-    np.testing.assert_allclose(los.expected_counts(Z_L, Z_S, host, 1.7), 1.7 * one, rtol=1e-13)
-    assert np.all(los.expected_counts(Z_L, Z_S, host, 0.0) == 0.0)
+    one = los_halos.expected_counts(Z_L, Z_S, host, 1.0)
+    assert one.shape == los_cone.slice_redshifts(Z_S)[0].shape and np.all(one > 0)
+    np.testing.assert_allclose(
+        los_halos.expected_counts(Z_L, Z_S, host, 1.7), 1.7 * one, rtol=1e-13
+    )
+    assert np.all(los_halos.expected_counts(Z_L, Z_S, host, 0.0) == 0.0)
     # typical system: O(10) LoS halos in a 4″ cone between 1e7 and 1e10 M☉
     assert 5 < one.sum() < 40
 
 
 def test_expected_counts_scale_with_cone_area(host):
-    small = los.expected_counts(Z_L, Z_S, host, 1.0, los.LosConfig(cone_diameter=4.0))
-    big = los.expected_counts(Z_L, Z_S, host, 1.0, los.LosConfig(cone_diameter=8.0))
+    small = los_halos.expected_counts(Z_L, Z_S, host, 1.0, los_halos.LosConfig(cone_diameter=4.0))
+    big = los_halos.expected_counts(Z_L, Z_S, host, 1.0, los_halos.LosConfig(cone_diameter=8.0))
     np.testing.assert_allclose(big, 4 * small, rtol=1e-12)
 
 
 def test_delta_zero_gives_empty_arrays(rng):
-    halos = los.sample_los(Z_L, Z_S, 1.1, 2.0, 0.0, rng)
+    halos = los_halos.sample_los(Z_L, Z_S, 1.1, 2.0, 0.0, rng)
     assert len(halos) == 0
     for a in (halos.z, halos.x, halos.y, halos.m200):
         assert a.shape == (0,) and a.dtype == np.float64
@@ -195,14 +197,14 @@ def test_delta_zero_gives_empty_arrays(rng):
 
 def test_poisson_totals_match_expectation(rng, host):
     n_draws = 1500
-    batch = los.sample_los_batch(Z_L, Z_S, 1.1, 2.0, np.full(n_draws, 1.0), rng)
-    lam = los.expected_counts(Z_L, Z_S, host, 1.0)
+    batch = los_halos.sample_los_batch(Z_L, Z_S, 1.1, 2.0, np.full(n_draws, 1.0), rng)
+    lam = los_halos.expected_counts(Z_L, Z_S, host, 1.0)
     total, expect = batch.counts.sum(), n_draws * lam.sum()
     assert abs(total - expect) < 4 * math.sqrt(expect)
     # dispersion of the per-image count is Poisson
     assert np.var(batch.counts) == pytest.approx(lam.sum(), rel=0.15)
     # per-slice occupation matches too (chi² over slices)
-    _, z_mid = los_model.slice_redshifts(Z_S)
+    _, z_mid = los_cone.slice_redshifts(Z_S)
     idx = np.searchsorted(z_mid, batch.z - 1e-9)
     occ = np.bincount(idx, minlength=len(z_mid))
     chi2 = np.sum((occ - n_draws * lam) ** 2 / (n_draws * lam))
@@ -213,8 +215,8 @@ def test_poisson_totals_match_expectation(rng, host):
 @pytest.fixture(scope="module")
 def big_sample():
     rng = np.random.default_rng(7)
-    cfg = los.LosConfig(cone_diameter=12.0)  # 9× the volume -> ~140 halos per δ
-    return los.sample_los(Z_L, Z_S, 1.1, 2.0, 150.0, rng, cfg), cfg
+    cfg = los_halos.LosConfig(cone_diameter=12.0)  # 9× the volume -> ~140 halos per δ
+    return los_halos.sample_los(Z_L, Z_S, 1.1, 2.0, 150.0, rng, cfg), cfg
 
 
 def test_masses_follow_sheth_tormen(big_sample, host):
@@ -222,12 +224,12 @@ def test_masses_follow_sheth_tormen(big_sample, host):
     assert len(halos) > 15000
     assert halos.m200.min() >= 1e7 and halos.m200.max() <= 1e10
     # the model CDF: a λ-weighted mixture of per-slice CDFs, from a fine grid
-    lam = los.expected_counts(Z_L, Z_S, host, 150.0, cfg)
-    _, z_mid = los_model.slice_redshifts(Z_S)
+    lam = los_halos.expected_counts(Z_L, Z_S, host, 150.0, cfg)
+    _, z_mid = los_cone.slice_redshifts(Z_S)
     m = np.logspace(7, 10, 8001)
     cdf = np.zeros_like(m)
     for w, z in zip(lam, z_mid):
-        dn = los_model.sheth_tormen_dndm(m, z)
+        dn = los_cone.sheth_tormen_dndm(m, z)
         c = np.concatenate([[0], np.cumsum(0.5 * (dn[1:] + dn[:-1]) * np.diff(m))])
         cdf += w * c / c[-1]
     cdf /= lam.sum()
@@ -244,29 +246,29 @@ def test_masses_follow_sheth_tormen(big_sample, host):
 
 def test_positions_uniform_in_slice_disc(big_sample):
     halos, cfg = big_sample
-    radius = los_model.cone_radius_arcsec(halos.z, Z_L, Z_S, cfg.cone_diameter)
+    radius = los_cone.cone_radius_arcsec(halos.z, Z_L, Z_S, cfg.cone_diameter)
     rr = (halos.x**2 + halos.y**2) / radius**2
     assert np.all(rr <= 1.0)
     assert stats.kstest(rr, "uniform").pvalue > 1e-3
     phi = np.arctan2(halos.y, halos.x)
     assert stats.kstest(phi, stats.uniform(-np.pi, 2 * np.pi).cdf).pvalue > 1e-3
     # planes are the slice mid redshifts
-    _, z_mid = los_model.slice_redshifts(Z_S)
+    _, z_mid = los_cone.slice_redshifts(Z_S)
     assert np.all(np.isin(halos.z, z_mid))
 
 
 def test_same_seed_same_output_and_batch_consistency():
-    a = los.sample_los(Z_L, Z_S, 1.1, 2.0, 1.3, np.random.default_rng(3))
-    b = los.sample_los(Z_L, Z_S, 1.1, 2.0, 1.3, np.random.default_rng(3))
+    a = los_halos.sample_los(Z_L, Z_S, 1.1, 2.0, 1.3, np.random.default_rng(3))
+    b = los_halos.sample_los(Z_L, Z_S, 1.1, 2.0, 1.3, np.random.default_rng(3))
     for name in ("z", "x", "y", "m200"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     params = dict(
         z_lens=[0.18, 0.22], z_source=[0.55, 0.65], theta_e=[1.0, 1.2], gamma_ml=[1.9, 2.1]
     )
-    batch = los.sample_los_batch(**params, delta_los=[1.0, 2.0], rng=np.random.default_rng(4))
+    batch = los_halos.sample_los_batch(**params, delta_los=[1.0, 2.0], rng=np.random.default_rng(4))
     rng = np.random.default_rng(4)
     for i in range(2):
-        single = los.sample_los(*(v[i] for v in params.values()), [1.0, 2.0][i], rng)
+        single = los_halos.sample_los(*(v[i] for v in params.values()), [1.0, 2.0][i], rng)
         np.testing.assert_array_equal(batch.system(i).m200, single.m200)
         np.testing.assert_array_equal(batch.system(i).x, single.x)
     assert batch.counts.sum() == len(batch.z)
@@ -296,7 +298,7 @@ def test_bad_inputs_name_argument(kwargs, name):
     )
     args.update(kwargs)
     with pytest.raises(ValueError, match=name):
-        los.sample_los(**args)
+        los_halos.sample_los(**args)
 
 
 @pytest.mark.parametrize(
@@ -313,16 +315,16 @@ def test_bad_inputs_name_argument(kwargs, name):
 )
 def test_bad_config_names_key(kwargs, name):
     with pytest.raises(ValueError, match=name):
-        los.LosConfig(**kwargs)
+        los_halos.LosConfig(**kwargs)
 
 
 def test_expected_counts_bad_inputs(host):
     with pytest.raises(ValueError, match="z_source"):
-        los.expected_counts(0.5, 0.5, host, 1.0)
+        los_halos.expected_counts(0.5, 0.5, host, 1.0)
     with pytest.raises(ValueError, match="delta_los"):
-        los.expected_counts(Z_L, Z_S, host, -1.0)
+        los_halos.expected_counts(Z_L, Z_S, host, -1.0)
     with pytest.raises(ValueError, match="host_m200"):
-        los.expected_counts(Z_L, Z_S, 0.0, 1.0)
+        los_halos.expected_counts(Z_L, Z_S, 0.0, 1.0)
 
 
 def test_batched_expectations_equal_one_system_at_a_time():
@@ -332,33 +334,35 @@ def test_batched_expectations_equal_one_system_at_a_time():
     zl = np.array([0.2, 0.35, 0.5])
     zs = np.array([0.6, 1.4, 0.9])
     hosts = np.array([2e12, 5e12, 1e13])
-    table = los_model.slice_table(zl, zs)
+    table = los_cone.slice_table(zl, zs)
     for b in range(3):
         k = table.n[b]
-        assert k == los_model.slice_redshifts(zs[b])[0].size
-        assert np.array_equal(table.volume[b, :k], los_model.slice_volumes(zl[b], zs[b]))
-        z_lo = los_model.slice_redshifts(zs[b])[0]
-        boosts = los_model.two_halo_boosts(table.z_lo, table.n, zl, hosts)
-        assert np.array_equal(boosts[b, :k], los_model.two_halo_boost(z_lo, zl[b], hosts[b]))
+        assert k == los_cone.slice_redshifts(zs[b])[0].size
+        assert np.array_equal(table.volume[b, :k], los_cone.slice_volumes(zl[b], zs[b]))
+        z_lo = los_cone.slice_redshifts(zs[b])[0]
+        boosts = los_cone.two_halo_boosts(table.z_lo, table.n, zl, hosts)
+        assert np.array_equal(boosts[b, :k], los_cone.two_halo_boost(z_lo, zl[b], hosts[b]))
         assert np.all(boosts[b, k:] == 1.0)
     # colossus' bias of an array goes through numpy's SIMD loops, which on AVX-512 CPUs
     # round the last bit of some elements differently from the one-element path
     np.testing.assert_allclose(
-        los_model.host_bias(hosts, zl),
-        [los_model.host_bias(h, z) for h, z in zip(hosts, zl)],
+        los_cone.host_bias(hosts, zl),
+        [los_cone.host_bias(h, z) for h, z in zip(hosts, zl)],
         rtol=4e-16,
         atol=0,
     )
     seeds = np.random.SeedSequence(3).spawn(3)
-    batch = los.sample_los_batch(zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(s) for s in seeds])
+    batch = los_halos.sample_los_batch(
+        zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(s) for s in seeds]
+    )
     for b in range(3):
-        one = los.sample_los(zl[b], zs[b], 1.1, 2.0, 1.0, np.random.default_rng(seeds[b]))
+        one = los_halos.sample_los(zl[b], zs[b], 1.1, 2.0, 1.0, np.random.default_rng(seeds[b]))
         got = batch.system(b)
         assert all(
             np.array_equal(getattr(got, f), getattr(one, f)) for f in ("z", "x", "y", "m200")
         )
     with pytest.raises(ValueError, match=r"sequence of 3 of them \(one per system\), got 1 items"):
-        los.sample_los_batch(zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(0)])
+        los_halos.sample_los_batch(zl, zs, 1.1, 2.0, 1.0, [np.random.default_rng(0)])
 
 
 def test_plane_logs_of_an_array_equal_the_pairs_one_at_a_time():

@@ -32,7 +32,7 @@ from subslope.render import counters
 from subslope.render import pipeline as R
 from subslope.render.nearfar import interpolation_matrix, node_indices, split_pass
 from subslope.render.tiles import GridBlock
-from subslope.simulation.los import LosPopulation
+from subslope.simulation.los_halos import LosPopulation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_render import PSF, los_of, macro_of, subs_of  # noqa: E402

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from subslope import config as cfgmod
-from subslope.stages.plan import count_cluster_jobs, host_rules
+from subslope.plan import count_cluster_jobs, host_rules
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")

@@ -311,10 +311,12 @@ def test_cuda_matches_cpu():
 
 @pytest.mark.slow
 @pytest.mark.reference
-def test_report_numbers(rng):
-    """Prints the numbers quoted in docs/physics.md (ray tracing) (run with -m slow -s)."""
-    import time
-
+def test_multiplane_agrees_with_lenstronomy_and_float32(rng):
+    """The multi-plane numbers of docs/physics.md: a point mass and an SIS on two planes
+    agree with lenstronomy's MultiPlane to 1e-12″, and a 61-plane scene (SIS lens, 1500
+    point-mass subhalos, 60 slices of 30 point masses) traced in float32 stays within
+    1e-5″ of float64 at the median and 1e-4″ at the 99th percentile (measured 3e-7″ and
+    1.3e-6″; the maximum sits within ~1e-3″ of a point-mass centre and is not bounded)."""
     from lenstronomy.LensModel.lens_model import LensModel
 
     # 1. lenstronomy agreement
@@ -336,10 +338,7 @@ def test_report_numbers(rng):
         Plane(0.4, [functools.partial(sis, theta_e=1.1, cx=0.03, cy=0.02)]),
     ]
     bx, _ = multi_plane_ray_shoot(x, y, planes, 0.6)
-    print(
-        f"\nlenstronomy max|dbeta| = {np.abs(bx.numpy().ravel() - rx).max():.2e} arcsec "
-        "(100x100, 2 planes)"
-    )
+    assert np.abs(bx.numpy().ravel() - rx).max() < 1e-12
 
     # 2. a training-like scene: B systems, lens (SIS) + 1500 point-mass subhalos at z_lens,
     #    60 LoS slices of 30 point masses each, 100x100 grid, float64 and float32
@@ -365,14 +364,10 @@ def test_report_numbers(rng):
 
         pls = [Plane(zl, [functools.partial(sis, theta_e=torch.tensor(1.1, dtype=dt)), pop(n_sub)])]
         pls += [Plane(z, [pop(n_los)]) for z in np.arange(n_slice) * 0.01 + 0.015 if z < zs]
-        t0 = time.perf_counter()
         out[dt] = multi_plane_ray_shoot(xx, yy, sorted(pls, key=lambda p: float(np.max(p.z))), zs)
-        print(
-            f"{dt}: {len(pls)} planes, B={b}, {n_sub} subhalos + {len(pls) - 1}x{n_los} LoS, "
-            f"100x100: {time.perf_counter() - t0:.2f} s"
-        )
+        assert all(torch.isfinite(o).all() for o in out[dt])
     d = torch.hypot(
         *(o32.double() - o64 for o32, o64 in zip(out[torch.float32], out[torch.float64]))
     )
     q = torch.quantile(d.ravel(), torch.tensor([0.5, 0.99], dtype=d.dtype))
-    print(f"float32 - float64 |dbeta|: median {q[0]:.1e}, 99% {q[1]:.1e}, max {d.max():.1e} arcsec")
+    assert q[0] < 1e-5 and q[1] < 1e-4, q

@@ -16,7 +16,7 @@ from subslope.physics.light.sersic import magnitude_to_flux
 from subslope.physics.profiles.epl import epl_convergence, epl_deflection
 from subslope.render import counters, kernels, populations
 from subslope.render import pipeline as R
-from subslope.simulation.los import LosPopulation
+from subslope.simulation.los_halos import LosPopulation
 from subslope.simulation.subhalos import SubhaloPopulation
 
 PSF = torch.as_tensor(gaussian_psf(0.1, 0.04))

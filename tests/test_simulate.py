@@ -12,16 +12,16 @@ import torch
 from scipy import stats
 
 from subslope import config as cfgmod
+from subslope import plan
 from subslope.io import shards
 from subslope.physics import concentration, cosmology
 from subslope.physics.grid import pixel_grid
-from subslope.simulation import los as losmod
+from subslope.simulation import los_halos as losmod
 from subslope.simulation import rerender
 from subslope.simulation import shard as simulate
 from subslope.simulation.macro import sample_macro
 from subslope.simulation.precision import SUBHALO_DTYPES
 from subslope.simulation.scenes import Scene
-from subslope.stages import plan
 from tests.conftest import REPO_ROOT
 
 

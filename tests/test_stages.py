@@ -10,21 +10,21 @@ import pytest
 
 from subslope.io.observations import find_lens_centre
 from subslope.io.ratio_profiles import read_profiles, write_profiles
+from subslope.plan import derived_seed
 from subslope.stages.calibrate import (
     calibrate_stack_size,
     load_thresholds,
-    safe_threshold,
     summarize_coverage,
     threshold_for,
 )
 from subslope.stages.cdm_grid import cdm_band, measure_cdm_grid
 from subslope.stages.figures import spearman_trend
 from subslope.stages.null_tests import NULL_COLUMNS
-from subslope.stages.plan import derived_seed
+from subslope.stages.null_tests.visibility import visibility_row
 from subslope.stages.summary import SUMMARY_SECTIONS, write_summary
 from subslope.stages.train import checkpoint_key, training_section
-from subslope.stages.visibility import visibility_row
 from subslope.stats import calibration as cal
+from subslope.stats.calibration import safe_threshold
 from subslope.stats.intervals import gamma_grid
 
 SIGMA = 0.15  # per-image noise of the Gaussian toy

@@ -12,10 +12,10 @@ import torch
 from test_nre_data import write_shard
 
 from subslope import config as cfgmod
+from subslope import plan
 from subslope.nre.data import make_loader
 from subslope.nre.stream import StreamBatches
 from subslope.nre.train import train
-from subslope.stages import plan
 from subslope.stages.simulate import runnable_config
 from subslope.stages.train import training_section, training_stream
 from tests.conftest import REPO_ROOT, run_snakemake

@@ -1,4 +1,4 @@
-"""The systematics variants (subslope.stages.systematics) and the shard cache
+"""The systematics variants (subslope.campaigns.systematics) and the shard cache
 (subslope.io.shard_cache): variant configs, the changes column, cache keys, and two
 variants of the tiny campaign run through `subslope systematics` sharing its shards."""
 
@@ -17,10 +17,7 @@ import yaml
 from conftest import REPO_ROOT, shared_data_dir
 
 from subslope import config as C
-from subslope.io.shard_cache import CODE_PARTS, cached_path, take_from_cache
-from subslope.stages.plan import plan_problems, shard_job_config
-from subslope.stages.simulate import shard_cache_key
-from subslope.stages.systematics import (
+from subslope.campaigns.systematics import (
     SYSTEMATICS_COLUMNS,
     SystematicsError,
     config_changes,
@@ -28,6 +25,9 @@ from subslope.stages.systematics import (
     reference_config,
     variant_config,
 )
+from subslope.io.shard_cache import CODE_PARTS, cached_path, take_from_cache
+from subslope.plan import plan_problems, shard_job_config
+from subslope.stages.simulate import shard_cache_key
 
 CONFIG = REPO_ROOT / "config" / "config.yaml"
 TINY = REPO_ROOT / "config" / "tiny.yaml"

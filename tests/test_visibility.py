@@ -1,4 +1,4 @@
-"""The CDM visibility check (subslope.stages.visibility): the paired shift of the stack
+"""The CDM visibility check (subslope.stages.null_tests.visibility): the paired shift of the stack
 γ_MLE when the subhalos are removed, its test, and the pairing of the profiles files."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from subslope.io.ratio_profiles import write_profiles
-from subslope.stages.visibility import (
+from subslope.stages.null_tests.visibility import (
     VISIBILITY_COLUMNS,
     cdm_visibility,
     paired_stack_mles,

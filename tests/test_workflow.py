@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from subslope.figures.data import log_stretch_limits
+from subslope.figures.gallery import log_stretch_limits
 from tests.conftest import TINY
 from tests.conftest import run_snakemake as snakemake
 
@@ -372,6 +372,32 @@ def test_real_run_tiny_simulation(tiny_run, campaign):
     assert (
         "per image" in (campaign / "logs" / "simulate_shard" / "train" / "shard_0.log").read_text()
     )
+
+
+@pytest.mark.slow
+def test_tiny_campaign_logs_hold_no_torch_guard_notices(tiny_run, campaign):
+    """torch's per-guard notice of the traced-graph cache (hundreds per job) reaches
+    neither a job's log nor the terminal of the run."""
+    from subslope.render.kernels import PRECOMPILE_GUARD_NOTICE
+
+    notice = PRECOMPILE_GUARD_NOTICE.split("%s")[-1].strip()
+    shard_log = campaign / "logs" / "simulate_shard" / "train" / "shard_0.log"
+    assert shard_log.read_text().strip(), "the shard job wrote no log"
+    noisy = [str(p) for p in (campaign / "logs").rglob("*.log") if notice in p.read_text()]
+    assert not noisy, noisy
+    terminal = json.loads((campaign.parent / "tiny_campaign.json").read_text())["output"]
+    assert notice not in terminal
+
+
+@pytest.mark.slow
+def test_results_page_of_the_tiny_campaign(tiny_run, campaign, tmp_path):
+    from subslope.campaigns.results_page import write_results_page
+
+    record = json.loads((tiny_run / "run.json").read_text())
+    assert record["run_name"] == "tiny" and record["machine"]["cores"] >= 1
+    page = write_results_page(tiny_run, tmp_path / "results.md").read_text()
+    assert "--configfile config/tiny.yaml" in page and "## Verdict" in page
+    assert "### HST measurement" in page and "not recorded" not in page
 
 
 @pytest.mark.slow

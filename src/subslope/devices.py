@@ -8,7 +8,7 @@ work with a message that names the config key it came from.
 
 from __future__ import annotations
 
-__all__ = ["DEVICE_KEYS", "DeviceError", "device_problems", "pick_device"]
+__all__ = ["DEVICE_KEYS", "DeviceError", "device_problems", "machine_description", "pick_device"]
 
 #: The config keys that name a torch device, with the stage whose jobs use each.
 DEVICE_KEYS = {
@@ -64,3 +64,30 @@ def device_problems(config, stages=None) -> list[str]:
             except DeviceError as exc:
                 problems.append(str(exc))
     return problems
+
+
+def machine_description() -> dict[str, object]:
+    """This machine as a campaign record states it: CPU model (``/proc/cpuinfo``), cores,
+    the CUDA device's name if any, Python and torch versions."""
+    import os
+    import platform
+
+    import torch
+
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            cpu = next(
+                (line.split(":", 1)[1].strip() for line in fh if line.startswith("model name")),
+                cpu,
+            )
+    except OSError:
+        pass
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "gpu": gpu,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+    }

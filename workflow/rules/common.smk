@@ -7,7 +7,7 @@ from snakemake.logging import logger
 from snakemake.exceptions import WorkflowError
 
 import subslope.devices
-import subslope.stages.plan
+import subslope.plan
 import subslope.config
 import subslope.io.resources
 import subslope.simulation.resolve
@@ -22,7 +22,7 @@ except subslope.config.ConfigError as exc:
     raise WorkflowError(str(exc)) from None
 subslope.config.apply_env_overrides(config)  # SUBSLOPE_DATA_MIRROR -> data.mirror
 # What only the scenes, the data registry and the HST catalogue show, before any job.
-_PROBLEMS = subslope.stages.plan.plan_problems(config)
+_PROBLEMS = subslope.plan.plan_problems(config)
 if _PROBLEMS:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(_PROBLEMS))
 
@@ -36,7 +36,7 @@ onstart:
     if workflow.remote_exec:
         pass
     elif workflow.executor_plugin.name == "slurm":
-        problems = subslope.stages.plan.slurm_gpu_problems(config)
+        problems = subslope.plan.slurm_gpu_problems(config)
     elif workflow.local_exec:
         problems = subslope.devices.device_problems(
             config, subslope.config.active_stages(config)
@@ -73,7 +73,7 @@ def cosmos_dirs(files):
 
 
 # Simulation: one entry {scene, shard, multiplier, path} per shard file of the config.
-SHARD_JOBS = subslope.stages.plan.shard_jobs(config)
+SHARD_JOBS = subslope.plan.shard_jobs(config)
 SIM_SCENES = sorted({job["scene"] for job in SHARD_JOBS})
 
 
@@ -98,7 +98,7 @@ def shard_job(wildcards):
     """The resolved configuration of one shard job, passed as a param (so a change reruns it)."""
     key = (wildcards.scene, wildcards.get("multiplier"))
     if key not in _SHARD_JOB:  # cached per scene and multiplier: the shards share it
-        _SHARD_JOB[key] = subslope.stages.plan.shard_job_config(config, *key)
+        _SHARD_JOB[key] = subslope.plan.shard_job_config(config, *key)
     return _SHARD_JOB[key]
 
 
@@ -141,7 +141,7 @@ def stream_job():
     stream): a change of it retrains, as a shard job's would resimulate."""
     if not STREAMING:
         return None
-    return subslope.stages.plan.shard_job_config(config, subslope.config.STREAMED_SCENE)
+    return subslope.plan.shard_job_config(config, subslope.config.STREAMED_SCENE)
 
 
 def simulation_targets():
@@ -226,7 +226,7 @@ def derived_seed(section):
     """The section's seed, or one derived from the global seed when it is null."""
     value = config[section].get("seed")
     return (
-        subslope.stages.plan.derived_seed(config["seed"], section)
+        subslope.plan.derived_seed(config["seed"], section)
         if value is None
         else int(value)
     )

@@ -41,7 +41,7 @@ rule null_tests:
         "../scripts/null_tests.py"
 
 
-# The null test a gamma-blind estimator must pass (subslope.stages.halo_free): the first
+# The null test a gamma-blind estimator must pass (subslope.stages.null_tests.halo_free): the first
 # null_tests.halo_free_sets sets of the stack scene re-rendered without their subhalos
 # and line-of-sight halos, their negative sheets kept and removed; gamma_MLE must not
 # follow the label. Also the bias of gamma_MLE by N_sub. Off when halo_free_sets is 0.
@@ -105,7 +105,7 @@ rule halo_free_null:
 # Do the CDM subhalos reach the estimator? The a = 1 shards of the CDM scenes re-rendered
 # without their subhalos (line-of-sight halos, lens, source, light and noise seeds as
 # stored), and each set's stack gamma_MLE compared with its original's
-# (subslope.stages.visibility). Off with null_tests.cdm_visibility: false.
+# (subslope.stages.null_tests.visibility). Off with null_tests.cdm_visibility: false.
 use rule halo_free_profiles as subhalo_free_profiles with:
     input:
         shard="results/simulate_shard/{scene}/a{multiplier}/shard_{shard}.h5",

@@ -2,7 +2,7 @@
 # multiplier for the CDM scenes), the whitening statistics of the training shards and
 # one figure of example images per scene. Shards are valuable (hours of compute at
 # campaign scale): never temp(). Which shards exist comes from
-# subslope.stages.plan.shard_jobs(config) (counts in config["simulation"]["scenes"]).
+# subslope.plan.shard_jobs(config) (counts in config["simulation"]["scenes"]).
 
 
 rule simulate_shard:
@@ -29,7 +29,7 @@ rule simulate_shard:
         serial=1,
     params:
         # The resolved values that determine this shard's images: a change of any of
-        # them reruns the job, and nothing else does (subslope.stages.plan.shard_job_config).
+        # them reruns the job, and nothing else does (subslope.plan.shard_job_config).
         job=shard_job,
     script:
         "../scripts/simulate_shard.py"

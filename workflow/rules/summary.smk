@@ -7,6 +7,7 @@ rule write_summary:
         unpack(summary_inputs),
     output:
         md=update("results/summary.md"),
+        run=update("results/run.json"),
         csv=update(expand("results/{name}.csv", name=SUMMARY_CSVS)),
     log:
         "logs/write_summary.log",
@@ -20,5 +21,6 @@ rule write_summary:
         benchmarks=benchmark_files(),
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
+        cores=workflow.cores,
     script:
         "../scripts/write_summary.py"

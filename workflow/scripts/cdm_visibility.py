@@ -4,7 +4,7 @@ and without their subhalos, set by set."""
 import logging
 
 from subslope.logs import log_to_file
-from subslope.stages.visibility import cdm_visibility
+from subslope.stages.null_tests.visibility import cdm_visibility
 
 log_to_file(snakemake.log[0])
 try:

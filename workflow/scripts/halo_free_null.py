@@ -4,7 +4,7 @@ gamma_MLE by N_sub."""
 import logging
 
 from subslope.logs import log_to_file
-from subslope.stages.halo_free import halo_free_null
+from subslope.stages.null_tests.halo_free import halo_free_null
 
 log_to_file(snakemake.log[0])
 try:

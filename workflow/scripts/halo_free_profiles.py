@@ -9,7 +9,7 @@ import torch
 from subslope.devices import pick_device
 from subslope.logs import log_to_file
 from subslope.render.kernels import use_compile_cache
-from subslope.stages.halo_free import halo_free_shard
+from subslope.stages.null_tests.halo_free import halo_free_shard
 from subslope.stats.intervals import gamma_grid
 
 log_to_file(snakemake.log[0])

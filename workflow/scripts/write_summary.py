@@ -4,7 +4,7 @@ import json
 import logging
 
 from subslope.logs import log_to_file
-from subslope.stages.summary import write_summary
+from subslope.stages.summary import write_run_record, write_summary
 
 log_to_file(snakemake.log[0])
 try:
@@ -31,7 +31,14 @@ try:
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
     )
-    logging.info("wrote %s", path)
+    record = write_run_record(
+        snakemake.output.run,
+        run_name=snakemake.params.run_name,
+        config_hash=snakemake.params.config_hash,
+        config_files=snakemake.params.config_files,
+        cores=snakemake.params.cores,
+    )
+    logging.info("wrote %s and %s", path, record)
 except Exception:
     logging.exception("write_summary failed")
     raise

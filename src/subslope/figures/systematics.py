@@ -1,5 +1,5 @@
 """The systematics figure: the HST slope, the CDM predictions and the calibration of
-every simulator variant side by side (:mod:`subslope.stages.systematics`)."""
+every simulator variant side by side (:mod:`subslope.campaigns.systematics`)."""
 
 from __future__ import annotations
 

@@ -35,9 +35,9 @@ import shutil
 from collections.abc import Mapping
 from pathlib import Path
 
+from subslope.digests import package_digest
 from subslope.io.atomic import atomic_write, temporary_path, write_text
 from subslope.io.shards import ShardError, file_sha256, verify_shard
-from subslope.sources import package_digest
 
 __all__ = [
     "CODE_PARTS",
@@ -76,7 +76,7 @@ MANIFEST = "manifest.json"
 
 
 def code_digest(parts: tuple[str, ...] = CODE_PARTS) -> str:
-    """SHA-256 over the files of ``parts`` (:func:`subslope.sources.package_digest`): with
+    """SHA-256 over the files of ``parts`` (:func:`subslope.digests.package_digest`): with
     :data:`CODE_PARTS`, a change to the code that makes shards invalidates every cached
     shard, while one to the estimator, the statistics, the figures or the stages does
     not."""

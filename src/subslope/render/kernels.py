@@ -22,6 +22,7 @@ from typing import Any
 
 import torch
 
+from subslope.digests import package_digest
 from subslope.physics.pairs.sums import (
     circle_peaks,
     direct_sums,
@@ -31,7 +32,6 @@ from subslope.physics.pairs.sums import (
     near_tile_sums,
 )
 from subslope.render.settings import RenderSettings
-from subslope.sources import package_digest
 
 __all__ = [
     "FEW_MEMBERS",
@@ -107,7 +107,7 @@ def torch_default_folder() -> str:
 
 def kernel_source_key() -> str:
     """12 hex digits of the SHA-256 of the kernels' sources (this module and
-    :mod:`subslope.physics.pairs`, :func:`subslope.sources.package_digest`) and the torch
+    :mod:`subslope.physics.pairs`, :func:`subslope.digests.package_digest`) and the torch
     version. A traced graph loaded from disk is not traced again, so module-level
     constants that it baked in (the polynomial coefficients) could go stale; a folder per
     key rules that out."""
@@ -126,6 +126,7 @@ def keep_traced_graphs() -> None:
         return
     _KEEPING = True
     torch._dynamo.config.caching_precompile = True
+    logging.getLogger("torch._dynamo.guards").addFilter(drop_precompile_guard_notices)
     # Dynamo names the globals a graph installs in its module from one counter that starts
     # at 0 in every process, and a loaded graph brings the names of the process that traced
     # it: two loaded graphs, or a loaded and a new one, can claim the same name ("Name
@@ -136,6 +137,17 @@ def keep_traced_graphs() -> None:
     if hasattr(bytecode_transformation, "_unique_id_counter"):
         bytecode_transformation._unique_id_counter = itertools.count(secrets.randbits(64))
     atexit.register(_save_traced_graphs)
+
+
+#: The message torch logs (as a warning) for every guard it leaves out of a graph kept by
+#: the caching precompile: hundreds per job, none of them actionable.
+PRECOMPILE_GUARD_NOTICE = "guard on %s is dropped with caching_precompile=True."
+
+
+def drop_precompile_guard_notices(record: logging.LogRecord) -> bool:
+    """Logging filter: False for torch's per-guard notice of the caching precompile
+    (:data:`PRECOMPILE_GUARD_NOTICE`), True for every other record."""
+    return not (isinstance(record.msg, str) and record.msg.endswith(PRECOMPILE_GUARD_NOTICE))
 
 
 def _save_traced_graphs() -> None:

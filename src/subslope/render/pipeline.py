@@ -526,7 +526,8 @@ def render(
     ``psf``: odd 2-D kernel (sum 1) at the pixel scale; ``sources``: pixelated sources,
     or None with Sérsic source keys in ``macro``; ``subhalos``:
     :class:`subslope.simulation.subhalos.SubhaloPopulation` ('epl' | 'nfw' | 'tnfw'); ``los``:
-    :class:`subslope.simulation.los.LosPopulation` (reduced deflections for each system's z_source);
+    :class:`subslope.simulation.los_halos.LosPopulation` (reduced deflections for each
+    system's z_source);
     ``sheet_centre``: where the negative sheets are centred, ``origin`` or
     ``mass_centroid`` (:data:`subslope.render.populations.SHEET_CENTRES`), one name for
     every plane or ``{"subhalos": ..., "los": ...}``; ``members=False``: the negative

@@ -128,7 +128,7 @@ def stored(arrays: Mapping[str, np.ndarray], dtypes) -> dict[str, np.ndarray]:
 
 
 def rounded_los(pop):
-    """A line-of-sight population (:class:`subslope.simulation.los.LosPopulation`) with
+    """A line-of-sight population (:class:`subslope.simulation.los_halos.LosPopulation`) with
     every field rounded to :data:`LOS_DTYPE` (all of them are stored)."""
     return dataclasses.replace(
         pop,

@@ -14,7 +14,7 @@ import torch
 
 from subslope.io import shards as _shards
 from subslope.physics.instrument import add_noise
-from subslope.simulation.los import LosPopulation
+from subslope.simulation.los_halos import LosPopulation
 from subslope.simulation.observing import build_instrument
 from subslope.simulation.precision import rounded_image
 from subslope.simulation.shard import _settings_from_json
@@ -203,7 +203,7 @@ def subhalo_free_images(
     their subhalos (and the subhalos' negative sheet); the line-of-sight halos, lens,
     source, lens light, sky and noise seeds as stored. Rounded to the stored precision,
     ``(k, H, W)`` float32, e⁻/s per pixel. Beside the shard's own images it measures
-    what the subhalos add to an image (:mod:`subslope.stages.visibility`)."""
+    what the subhalos add to an image (:mod:`subslope.stages.null_tests.visibility`)."""
     return _rerendered(
         shard_path,
         indices,

@@ -15,8 +15,8 @@
 4. **Per batch** of ``simulation.render.batch_images`` images: the smooth model
    (:func:`subslope.render.pipeline.render_smooth`) when subhalos go on the arc; subhalos
    (:func:`subslope.simulation.subhalos.sample_subhalos`); LoS halos
-   (:func:`subslope.simulation.los.sample_los_batch` +
-   :func:`subslope.simulation.los.los_profiles`), both at their stored precision
+   (:func:`subslope.simulation.los_halos.sample_los_batch` +
+   :func:`subslope.simulation.los_halos.los_profiles`), both at their stored precision
    (:mod:`subslope.simulation.precision`); the noise-free image
    (:func:`subslope.render.pipeline.render`); noise
    (:func:`subslope.physics.instrument.add_noise` with the image's seed); the pixels
@@ -48,7 +48,7 @@ from subslope.devices import pick_device
 from subslope.io import shards as _shards
 from subslope.physics.instrument import Instrument, add_noise
 from subslope.simulation import macro as _macro
-from subslope.simulation.los import LosConfig, LosPopulation, los_profiles, sample_los_batch
+from subslope.simulation.los_halos import LosConfig, LosPopulation, los_profiles, sample_los_batch
 from subslope.simulation.observing import build_instrument, build_psf, fit_input_light_of
 from subslope.simulation.precision import (
     LOS_DTYPE,

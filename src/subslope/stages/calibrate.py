@@ -5,8 +5,6 @@ that the later stages use."""
 from __future__ import annotations
 
 import logging
-import math
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -16,11 +14,10 @@ import numpy as np
 from subslope.figures.save import save_figure
 from subslope.io.atomic import atomic_write, read_json, write_json, write_text
 from subslope.io.ratio_profiles import read_profiles
-from subslope.stages.plan import derived_seed
+from subslope.plan import derived_seed
 from subslope.stats import calibration, intervals
 
 __all__ = [
-    "safe_threshold",
     "calibrate_stack_size",
     "summarize_coverage",
     "load_thresholds",
@@ -30,57 +27,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-def safe_threshold(t, level: float) -> tuple[float, bool]:
-    """``(τ, exact)``: the conformal threshold of :func:`subslope.stats.calibration.threshold`, or,
-    when the sample is too small for that level (rank > n), the largest ``t`` with
-    ``exact=False`` (tiny test campaigns); NaN for an empty sample."""
-    t = np.asarray(t, dtype=np.float64)
-    if t.size == 0:
-        return float("nan"), False
-    k = math.ceil((t.size + 1) * level)
-    if k > t.size:
-        return float(np.max(t)), False
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", calibration.FewSamplesWarning)
-        return float(calibration.threshold(t, level)), True
-
-
-def _heldout_coverage(
-    t_cal: np.ndarray, t_held: np.ndarray, tau_cal: float, tau_w: float, levels: np.ndarray
-) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-    """Coverage of the held-out stacks at the calibrated and at Wilks' threshold, with
-    binomial errors and the Wilson interval, and the expected-coverage curves over
-    ``levels`` (thresholds from the calibration stacks); NaN without held-out stacks."""
-    nan = float("nan")
-    cov = dict(
-        coverage=nan,
-        coverage_err=nan,
-        wilson_lo=nan,
-        wilson_hi=nan,
-        coverage_wilks=nan,
-        coverage_wilks_err=nan,
-    )
-    curve = np.full(levels.size, np.nan)
-    curve_w = np.full(levels.size, np.nan)
-    if not t_held.size:
-        return cov, curve, curve_w
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", calibration.FewSamplesWarning)
-        p, err, (wlo, whi) = calibration.coverage(t_held, tau_cal)
-        pw, errw, _ = calibration.coverage(t_held, tau_w)
-        _, curve_w = calibration.wilks_coverage(t_held, levels)
-        curve = np.array([np.mean(t_held <= safe_threshold(t_cal, a)[0]) for a in levels])
-    cov = dict(
-        coverage=p,
-        coverage_err=err,
-        wilson_lo=wlo,
-        wilson_hi=whi,
-        coverage_wilks=pw,
-        coverage_wilks_err=errw,
-    )
-    return cov, curve, curve_w
 
 
 def calibrate_stack_size(
@@ -119,37 +65,24 @@ def calibrate_stack_size(
     rng = np.random.default_rng(derived_seed(seed, f"stacks/N{int(n)}"))
     cut = calibration.make_stacks(data["gamma_true"], data["set_id"], int(n), rng, mode=stacks)
     t_true = calibration.stack_t_true(data["log_ratio"], data["gammas"], cut)
-    lv = np.linspace(0.01, 0.99, 99) if levels is None else np.asarray(levels, dtype=np.float64)
-    tau, exact = safe_threshold(t_true, level)
-    tau_w = calibration.wilks_threshold(level)
-    try:
-        is_cal = calibration.split(
-            cut.set_id, seed=derived_seed(seed, "split"), fraction=1.0 - heldout_fraction
-        )
-    except ValueError:  # a single set: nothing to hold out
-        is_cal = np.ones(len(cut), dtype=bool)
-    t_cal, t_held = t_true[is_cal], t_true[~is_cal]
-    tau_cal, _ = safe_threshold(t_cal, level)
-    cov, curve, curve_w = _heldout_coverage(t_cal, t_held, tau_cal, tau_w, lv)
+    cal = calibration.calibrate(
+        t_true,
+        cut.set_id,
+        level=level,
+        seed=derived_seed(seed, "split"),
+        fraction=1.0 - heldout_fraction,
+        levels=levels,
+    )
     out = dict(
         n=int(n),
         level=float(level),
-        tau=tau,
-        tau_exact=bool(exact),
-        tau_calibration=tau_cal,
-        tau_wilks=tau_w,
         t_true=t_true,
         gamma=cut.gamma,
         set_id=cut.set_id,
-        is_calibration=is_cal,
         indices=cut.indices,
-        levels=lv,
-        coverage_curve=curve,
-        coverage_curve_wilks=curve_w,
-        n_calibration=int(is_cal.sum()),
-        n_heldout=int((~is_cal).sum()),
-        **cov,
+        **cal,
     )
+    tau, exact, cov = cal["tau"], cal["tau_exact"], cal
     out_npz = Path(out_npz)
     with atomic_write(out_npz) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **out)

@@ -6,7 +6,7 @@ import logging
 import os
 from collections.abc import Sequence
 
-from subslope.figures.data import plot_hst_gallery
+from subslope.figures.gallery import plot_hst_gallery
 from subslope.io.observations import load_hst
 
 __all__ = ["plot_gallery"]

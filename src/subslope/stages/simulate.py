@@ -83,15 +83,15 @@ def attach_light_fit(config: Mapping[str, Any], src, dst) -> Path:
 
 
 def plot_scene_examples_from_shard(*args, **kwargs):
-    """:func:`subslope.figures.data.plot_scene_examples_from_shard`."""
-    from subslope.figures.data import plot_scene_examples_from_shard as plot
+    """:func:`subslope.figures.gallery.plot_scene_examples_from_shard`."""
+    from subslope.figures.gallery import plot_scene_examples_from_shard as plot
 
     return plot(*args, **kwargs)
 
 
 def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str, Any]:
     """The config a job of ``scene`` simulates with: its resolved sections ``job``
-    (:func:`subslope.stages.plan.shard_job_config`) plus, from the workflow's config ``run``,
+    (:func:`subslope.plan.shard_job_config`) plus, from the workflow's config ``run``,
     what changes no image: ``data`` (where the resources live) and the run-only render
     keys; sets the compile cache (:func:`subslope.render.kernels.use_compile_cache`)."""
     config = copy.deepcopy(dict(job))
@@ -115,7 +115,7 @@ def simulate_shard_job(
     threads: int | None = None,
 ) -> Path:
     """One shard job of the workflow: ``job`` is its resolved configuration
-    (:func:`subslope.stages.plan.shard_job_config`, the rule's params); ``run`` the
+    (:func:`subslope.plan.shard_job_config`, the rule's params); ``run`` the
     workflow's config, from which only the values that must not rerun a finished shard
     are taken (:func:`runnable_config`; ``simulation.shard_cache``: a shard of the same
     key there is taken instead of simulated, and a new one is put there); ``threads``:

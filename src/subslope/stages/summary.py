@@ -5,20 +5,21 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from subslope.io.atomic import write_csv, write_text
+from subslope.io.atomic import write_csv, write_json, write_text
 from subslope.stages.calibrate import COVERAGE_COLUMNS
 from subslope.stages.cdm_grid import cdm_band
-from subslope.stages.halo_free import BIAS_COLUMNS, HALO_FREE_COLUMNS, SHEET_COLUMNS
 from subslope.stages.null_tests import NULL_COLUMNS
-from subslope.stages.visibility import VISIBILITY_COLUMNS
+from subslope.stages.null_tests.halo_free import BIAS_COLUMNS, HALO_FREE_COLUMNS, SHEET_COLUMNS
+from subslope.stages.null_tests.visibility import VISIBILITY_COLUMNS
 from subslope.stats.calibration import coverage_sigma, overconfident
 
-__all__ = ["SUMMARY_SECTIONS", "read_benchmarks", "write_summary"]
+__all__ = ["SUMMARY_SECTIONS", "read_benchmarks", "write_run_record", "write_summary"]
 
 
 def read_benchmarks(paths_by_stage: Mapping[str, Sequence]) -> list[dict[str, Any]]:
@@ -477,3 +478,30 @@ def write_summary(
         lines.append(f"## {title}\n")
         lines.extend(body)
     return write_text(out_md, "\n".join(lines))
+
+
+def write_run_record(
+    out_json, *, run_name: str, config_hash: str, config_files: Sequence[str], cores
+) -> Path:
+    """``run.json`` beside the summary: what made the campaign (run name, config files and
+    hash, Snakemake's cores, package version), on which machine
+    (:func:`subslope.devices.machine_description`) and when (UTC). It records the
+    environment, not a result: ``subslope compare-runs`` skips it, and
+    ``subslope results-page`` quotes it."""
+    from datetime import datetime
+
+    from subslope._version import __version__
+    from subslope.devices import machine_description
+
+    record = {
+        "run_name": run_name,
+        "config_hash": config_hash,
+        "config_files": list(config_files),
+        "cores": cores,
+        "subslope": __version__,
+        "finished_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M"),
+        "machine": machine_description(),
+    }
+    out = Path(out_json)
+    write_json(out, record)
+    return out

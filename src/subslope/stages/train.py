@@ -13,7 +13,7 @@ from typing import Any
 
 from subslope.config import STREAMED_SCENE, light_fit_enabled
 from subslope.nre.training_config import WORKFLOW_KEYS, config_hash, resolve_config
-from subslope.stages.plan import derived_seed
+from subslope.plan import derived_seed
 
 __all__ = [
     "training_section",

@@ -21,6 +21,7 @@ import math
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -31,7 +32,10 @@ from subslope.stats.intervals import t_at
 __all__ = [
     "FewSamplesWarning",
     "Stacks",
+    "CALIBRATION_COLUMNS",
+    "calibrate",
     "calibration_table",
+    "safe_threshold",
     "coverage",
     "coverage_sigma",
     "expected_coverage",
@@ -354,6 +358,112 @@ def wilks_coverage(t_heldout, levels=None, dof: int = 1) -> tuple[np.ndarray, np
     return lv, np.mean(held[None, :] <= tau[:, None], axis=1)
 
 
+def safe_threshold(t, level: float) -> tuple[float, bool]:
+    """``(τ, exact)``: the conformal threshold of :func:`threshold`, or, when the sample is
+    too small for that level (rank ⌈(n+1)α⌉ > n), the largest ``t`` with ``exact=False``
+    (tiny test campaigns); NaN for an empty sample."""
+    t = np.asarray(t, dtype=np.float64)
+    if t.size == 0:
+        return float("nan"), False
+    if math.ceil((t.size + 1) * level) > t.size:
+        return float(np.max(t)), False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FewSamplesWarning)
+        return float(threshold(t, level)), True
+
+
+#: The scalar columns of :func:`calibrate`, in the order of the calibration table.
+CALIBRATION_COLUMNS = (
+    "tau",
+    "tau_exact",
+    "tau_wilks",
+    "tau_calibration",
+    "n_calibration",
+    "n_heldout",
+    "coverage",
+    "coverage_err",
+    "wilson_lo",
+    "wilson_hi",
+    "coverage_wilks",
+    "coverage_wilks_err",
+)
+
+
+def calibrate(
+    t_true, keys, *, level: float = 0.68, seed: int = 0, fraction: float = 0.5, levels=None
+) -> dict[str, Any]:
+    """The threshold of one stack size and its held-out coverage.
+
+    ``t_true``: ``t(γ_true)`` of the stacks; ``keys``: their split keys (e.g.
+    ``Stacks.set_id``), of which :func:`split` puts ``fraction`` in the calibration part
+    (all of them when there is a single key). Returns:
+
+    - ``tau``: the threshold from *all* stacks (:func:`safe_threshold`; the one to apply
+      to new data, e.g. the HST stack), ``tau_exact`` whether the sample reached its rank;
+      ``tau_wilks``: Wilks' χ²₁ threshold (0.989 at 68%);
+    - ``tau_calibration``: the threshold from the calibration part; ``n_calibration``,
+      ``n_heldout``, ``is_calibration`` (per stack);
+    - ``coverage``, ``coverage_err`` (binomial σ), ``wilson_lo``, ``wilson_hi``: the
+      held-out coverage at ``tau_calibration``; ``coverage_wilks``, ``coverage_wilks_err``
+      the same at ``tau_wilks`` (NaN without held-out stacks);
+    - ``levels``, ``coverage_curve``, ``coverage_curve_wilks``: expected-coverage curves
+      over ``levels`` (default 0.01…0.99) with thresholds from the calibration part.
+    """
+    t = _check_t(t_true)
+    keys = np.asarray(keys)
+    if keys.shape != t.shape:
+        raise ValueError(f"keys must have one key per stack ({t.size}), got shape {keys.shape}")
+    lv = _levels(levels)
+    tau, exact = safe_threshold(t, level)
+    tau_w = wilks_threshold(level)
+    try:
+        is_cal = split(keys, seed=seed, fraction=fraction)
+    except ValueError:  # a single key: nothing to hold out
+        is_cal = np.ones(t.size, dtype=bool)
+    t_cal, t_held = t[is_cal], t[~is_cal]
+    tau_cal, _ = safe_threshold(t_cal, level)
+    out = dict(
+        tau=tau,
+        tau_exact=bool(exact),
+        tau_wilks=tau_w,
+        tau_calibration=tau_cal,
+        n_calibration=int(is_cal.sum()),
+        n_heldout=int((~is_cal).sum()),
+        is_calibration=is_cal,
+        levels=lv,
+    )
+    nan = float("nan")
+    out.update(
+        coverage=nan,
+        coverage_err=nan,
+        wilson_lo=nan,
+        wilson_hi=nan,
+        coverage_wilks=nan,
+        coverage_wilks_err=nan,
+        coverage_curve=np.full(lv.size, np.nan),
+        coverage_curve_wilks=np.full(lv.size, np.nan),
+    )
+    if not t_held.size:
+        return out
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FewSamplesWarning)
+        p, err, (wlo, whi) = coverage(t_held, tau_cal)
+        pw, errw, _ = coverage(t_held, tau_w)
+        _, curve_w = wilks_coverage(t_held, lv)
+    curve = np.array([np.mean(t_held <= safe_threshold(t_cal, a)[0]) for a in lv])
+    out.update(
+        coverage=p,
+        coverage_err=err,
+        wilson_lo=wlo,
+        wilson_hi=whi,
+        coverage_wilks=pw,
+        coverage_wilks_err=errw,
+        coverage_curve=curve,
+        coverage_curve_wilks=curve_w,
+    )
+    return out
+
+
 def calibration_table(
     t_by_n: Mapping[int, np.ndarray],
     keys_by_n: Mapping[int, np.ndarray] | None = None,
@@ -362,23 +472,14 @@ def calibration_table(
     seed: int = 0,
     fraction: float = 0.5,
 ):
-    """Per-N calibration summary as a pandas DataFrame (one row per N, sorted).
-
-    ``t_by_n[N]``: ``t(γ_true)`` of the stacks of N images; ``keys_by_n[N]``: their split
-    keys (e.g. ``Stacks.set_id``; default: each stack its own key). Columns:
-
-    - ``n_images``; ``tau``: the threshold from *all* stacks of that N (the one to apply to
-      new data, e.g. the HST stack); ``tau_wilks`` (0.989 at 68%);
-    - ``tau_calibration``: the threshold from the calibration part only;
-      ``n_calibration``, ``n_heldout``;
-    - ``coverage``, ``coverage_err`` (binomial σ), ``wilson_lo``, ``wilson_hi``: held-out
-      coverage with ``tau_calibration``; ``coverage_wilks``, ``coverage_wilks_err``: the
-      same with ``tau_wilks``.
-    """
+    """Per-N calibration summary as a pandas DataFrame (one row per N, sorted): the
+    columns ``n_images``, :data:`CALIBRATION_COLUMNS` and ``level``, each row
+    :func:`calibrate` of ``t_by_n[N]`` (``t(γ_true)`` of the stacks of N images) split by
+    ``keys_by_n[N]`` (default: each stack its own key). Warns for N with fewer than
+    ``2 × MIN_SAMPLES`` stacks."""
     import pandas as pd
 
     lv = _check_level(level)
-    tw = wilks_threshold(lv)
     rows = []
     for n in sorted(t_by_n):
         t = _check_t(t_by_n[n], f"t_by_n[{n}]")
@@ -387,34 +488,12 @@ def calibration_table(
             raise ValueError(
                 f"keys_by_n[{n}] must have one key per stack ({t.size}), got shape {keys.shape}"
             )
-        is_cal = split(keys, seed=seed, fraction=fraction)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FewSamplesWarning)
-            tau_all = threshold(t, lv)
-            tau_cal = threshold(t[is_cal], lv)
-            cov, err, (wlo, whi) = coverage(t[~is_cal], tau_cal)
-            cov_w, err_w, _ = coverage(t[~is_cal], tw)
         if t.size < 2 * MIN_SAMPLES:
             warnings.warn(
                 f"calibration_table: N={n} has only {t.size} stacks",
                 FewSamplesWarning,
                 stacklevel=2,
             )
-        rows.append(
-            dict(
-                n_images=int(n),
-                tau=tau_all,
-                tau_wilks=tw,
-                tau_calibration=tau_cal,
-                n_calibration=int(is_cal.sum()),
-                n_heldout=int((~is_cal).sum()),
-                coverage=cov,
-                coverage_err=err,
-                wilson_lo=wlo,
-                wilson_hi=whi,
-                coverage_wilks=cov_w,
-                coverage_wilks_err=err_w,
-                level=lv,
-            )
-        )
+        cal = calibrate(t, keys, level=lv, seed=seed, fraction=fraction, levels=[lv])
+        rows.append(dict(n_images=int(n), **{c: cal[c] for c in CALIBRATION_COLUMNS}, level=lv))
     return pd.DataFrame(rows)

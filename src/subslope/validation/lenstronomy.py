@@ -262,7 +262,7 @@ def lenstronomy_model(
     ``macro``: per-image parameters (:func:`subslope.simulation.macro.sample_macro`, Sérsic
     source); ``psf``: the pixel kernel; ``subhalos`` / ``los``: ragged populations
     (:class:`subslope.simulation.subhalos.SubhaloPopulation`,
-    :class:`subslope.simulation.los.LosPopulation`); ``sheets``: each plane's negative
+    :class:`subslope.simulation.los_halos.LosPopulation`); ``sheets``: each plane's negative
     sheet, computed by lenstronomy (off: a diagnostic); ``epl``: lenstronomy's EPL model
     (``EPL_NUMBA`` or ``EPL``); ``sheet_centre``: ``origin`` or ``mass_centroid``.
     """

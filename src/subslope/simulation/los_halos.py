@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from subslope.ragged import counts_to_offsets, counts_to_starts, draw_per_system
-from subslope.simulation.los_model import (
+from subslope.simulation.los_cone import (
     DEFAULT_CONFIG,
     LosConfig,
     _check_delta,
@@ -182,7 +182,7 @@ def expected_counts(
 
 def _slice_mass_tables(table, config: LosConfig):
     """``(n per slice [Mpc⁻³], stacked inverse-CDF table, ln M grid)`` of the slices of
-    ``table`` (:func:`subslope.simulation.los_model._mass_tables`, cached)."""
+    ``table`` (:func:`subslope.simulation.los_cone._mass_tables`, cached)."""
     return _mass_tables(
         tuple(table.z_mid.tolist()),
         float(config.m_min),
@@ -214,7 +214,7 @@ def _expected_counts(table, z_lens, host_m200, delta_los, n_int, config: LosConf
 
 def _draw(lam: np.ndarray, z_mid: np.ndarray, radius: np.ndarray, tables, rng) -> LosHalos:
     """Poisson counts per slice, inverse-CDF masses, uniform disc positions; ``tables``
-    (cdf, ln M, mass range) of :func:`subslope.simulation.los_model._mass_tables` for
+    (cdf, ln M, mass range) of :func:`subslope.simulation.los_cone._mass_tables` for
     ``z_mid`` or any grid it is a prefix of."""
     cdf, ln_m, (m_min, m_max) = tables
     n_per_slice = rng.poisson(lam)

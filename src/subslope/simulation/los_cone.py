@@ -1,7 +1,7 @@
 """The DG19 line-of-sight halo model: its configuration, the slices and cone of the
 light cone, the Sheth-Tormen mass function and the two-halo boost of the main-lens host
 (Gilman et al. 2019, arXiv:1909.02573; paltas ``LOSDG19``). Pure numpy float64; the
-colossus cosmology is ``planck18`` (set once, cached). :mod:`subslope.simulation.los`
+colossus cosmology is ``planck18`` (set once, cached). :mod:`subslope.simulation.los_halos`
 draws populations from it.
 
 Units: masses M☉ (no h), distances comoving Mpc (no h), angles arcsec.

@@ -1,5 +1,5 @@
-"""Stage ``halo_free``: the null test a γ-blind estimator must pass, and the bias of γ_MLE
-against the number of subhalos (rule halo_free_null; docs/inference.md).
+"""Stage ``null_tests``, halo-free part: the null test a γ-blind estimator must pass,
+and the bias of γ_MLE against the number of subhalos (rule halo_free_null; docs/inference.md).
 
 A substructure-free image need not give a flat profile: under the training prior an
 image without visible perturbations is likelier at low γ, so the Bayes-optimal profile
@@ -56,7 +56,7 @@ _PARAMS = ("theta_e", "lens_x", "lens_y", "gamma_sub", "set_index", "c_multiplie
 #: The images compared: as stored, halos removed with their sheets kept, and removed too.
 VARIANTS = ("original", "sheets_kept", "sheets_removed")
 #: Re-renders :func:`halo_free_shard` makes: the test's two, and the subhalos alone
-#: removed (line-of-sight halos kept; :mod:`subslope.stages.visibility`).
+#: removed (line-of-sight halos kept; :mod:`subslope.stages.null_tests.visibility`).
 RERENDERS = (*VARIANTS[1:], "subhalos_removed")
 #: Columns of ``halo_free.csv``, one row per variant.
 HALO_FREE_COLUMNS = (

@@ -1,4 +1,5 @@
-"""Stage ``visibility``: do the subhalos of the CDM sets reach the estimator? (rules
+"""Stage ``null_tests``, visibility part: do the subhalos of the CDM sets reach the
+estimator? (rules
 subhalo_free_profiles, cdm_visibility; docs/inference.md).
 
 The stack γ_MLE of a CDM set (figure 4, the a = 1 prediction) mixes two things: what

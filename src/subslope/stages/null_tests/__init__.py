@@ -1,6 +1,13 @@
-"""Stage ``null_tests``: scenes in which the label γ cannot be seen (no subhalos, with and
-without line-of-sight halos) pushed through the same inference as the test sets (rule
-null_tests; docs/inference.md).
+"""Stage ``null_tests``: what the estimator reads where there is no γ to read.
+
+The stage has three parts, one module each: the null scenes (this module, rule
+null_tests), images re-rendered without their substructure (:mod:`.halo_free`, rules
+halo_free_profiles and halo_free_null) and the CDM sets re-rendered without their
+subhalos (:mod:`.visibility`, rules subhalo_free_profiles and cdm_visibility);
+docs/inference.md.
+
+The null scenes are scenes in which the label γ cannot be seen (no subhalos, with and
+without line-of-sight halos) pushed through the same inference as the test sets.
 
 An estimator that reads γ from the subhalos returns flat profiles there: its γ_MLE
 spreads over the whole prior, its mean ln r̂(γ) is flat, and a calibrated interval

@@ -3,7 +3,7 @@
 A refactoring of the package must not change what the campaign computes. Run the tiny
 campaign before and after the change (same seed, machine and torch build), then::
 
-    python benchmarks/compare_runs.py BASELINE/results results
+    subslope compare-runs BASELINE/results results
 
 It checks, under both ``results/`` folders:
 
@@ -12,38 +12,42 @@ It checks, under both ``results/`` folders:
   (``--ignore-attr``);
 - JSON files (whitening statistics, thresholds, trend) equal, but for the SHA-256 and
   size of the shard files they name;
-- ``model.pt``: the same tensors (``torch.equal``), the same model card;
+- ``model.pt``: the same tensors (``torch.equal``), the same model card; read with
+  ``weights_only=True``, so a model file that is not ours runs no code;
 - ``.npz`` arrays bit-identical;
 - CSV files cell by cell (``training_log.csv`` on its loss and lr columns, whose
   timing columns differ from run to run; ``stage_runtime.csv`` is skipped);
 - ``summary.md``: every number outside the run-time table and the config hash.
 
-Figures, Snakemake benchmark files and training checkpoints (whose folder name hashes
-the config layout) are not compared.
+Figures, Snakemake benchmark files, training checkpoints (whose folder name hashes the
+config layout), the shard cache (keyed by the package's code digest) and ``run.json``
+(machine and date) are not compared.
 Prints one line per compared file and exits 1 when anything differs.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import re
-import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+__all__ = ["DEFAULT_IGNORED_ATTRS", "compare_file", "compare_trees", "summary_numbers"]
 
 #: Attributes allowed to differ: they record the package version, the config text and
 #: the render settings, whose layout a refactoring may change without changing a number.
 DEFAULT_IGNORED_ATTRS = ("package_version", "config", "config_hash", "render_settings")
 #: Files whose content is run-time or date dependent.
 SKIPPED_SUFFIXES = (".pdf", ".png", ".tsv", ".log")
-SKIPPED_NAMES = ("stage_runtime.csv",)
+SKIPPED_NAMES = ("stage_runtime.csv", "run.json")
 #: Folders not compared: checkpoints sit under a key that hashes the config layout
-#: (``model.pt`` holds the final weights and is compared).
-SKIPPED_DIRS = ("checkpoints", "benchmarks")
+#: (``model.pt`` holds the final weights and is compared); shard-cache entries under a
+#: key that digests the package's sources (the shards themselves are compared where the
+#: campaign uses them).
+SKIPPED_DIRS = ("checkpoints", "benchmarks", "shard_cache")
 #: training_log.csv columns that are deterministic (the others hold wall times).
 TRAINING_LOG_COLUMNS = ("epoch", "step", "train_loss", "val_loss", "lr")
 
@@ -126,8 +130,11 @@ def compare_npz(a: Path, b: Path) -> list[str]:
 def compare_model(a: Path, b: Path) -> list[str]:
     import torch
 
-    ma = torch.load(a, map_location="cpu", weights_only=False)
-    mb = torch.load(b, map_location="cpu", weights_only=False)
+    try:
+        ma = torch.load(a, map_location="cpu", weights_only=True)
+        mb = torch.load(b, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ...
+        return [f"not a tensors-only model file ({type(exc).__name__}); not loaded"]
     problems = []
     sa, sb = _state_dict(ma), _state_dict(mb)
     if sorted(sa) != sorted(sb):
@@ -237,23 +244,3 @@ def compare_trees(base: Path, new: Path, ignored_attrs=DEFAULT_IGNORED_ATTRS) ->
     for rel in sorted(files_b - files_a):
         print(f"new      {rel}")
     return failed
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("baseline", type=Path, help="results/ folder of the reference run")
-    parser.add_argument("new", type=Path, help="results/ folder of the run to check")
-    parser.add_argument(
-        "--ignore-attr",
-        action="append",
-        default=list(DEFAULT_IGNORED_ATTRS),
-        help="HDF5 attribute allowed to differ (repeatable)",
-    )
-    args = parser.parse_args(argv)
-    failed = compare_trees(args.baseline, args.new, tuple(args.ignore_attr))
-    print(f"{failed} file(s) differ" if failed else "all compared files are identical")
-    return 1 if failed else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -27,7 +27,7 @@ folders); ``--readouts SIMULATE_SHARD`` reads, with every trained run of the fir
 curve, the 13 HST lenses and a campaign's a = 1 CDM sets (:func:`readouts`:
 ``OUT/readouts.csv``), which is where trainings that agree in-distribution can differ.
 
-    .venv/bin/python benchmarks/learning_curve.py --out results/learning_curve \\
+    .venv/bin/python studies/learning_curve.py --out results/learning_curve \\
         --curve hst=config/config.yaml:results/simulate_shard \\
         --curve table1=/tmp/table1.yaml --sizes 2000 4000 8000 --workers 2 --figure
 """
@@ -185,9 +185,9 @@ def held_out_metrics(g, prof, gamma, sets, n: int, level: float = 0.68) -> dict:
     of the sets (:func:`subslope.stats.calibration.split`)."""
     from scipy.stats import spearmanr
 
-    from subslope.stages.calibrate import safe_threshold
     from subslope.stats import calibration as cal
     from subslope.stats import intervals as iv
+    from subslope.stats.calibration import safe_threshold
 
     stacks = cal.make_stacks(gamma, sets, n, mode="independent")
     stacked = iv.stack(prof, stacks.indices)
@@ -279,7 +279,7 @@ def readouts(out: Path, label: str, config_path: str, resources, run: Path, cdm:
     """What one trained run reads of the data and of CDM: the combined 13-lens HST
     interval and the stack γ_MLE of the a = 1 NFW and tNFW sets (median, 16–84%, the
     fraction at a prior edge), all with the 13-stack threshold τ_13 of every test_epl set
-    (:func:`subslope.stages.calibrate.safe_threshold`). ``cdm``: a campaign's
+    (:func:`subslope.stats.calibration.safe_threshold`). ``cdm``: a campaign's
     ``simulate_shard`` folder (``nfw/a1``, ``tnfw/a1``); their shards get the lens-light
     fit in ``OUT/LABEL/cdm_fit`` when the run's inputs need it."""
     import torch
@@ -287,11 +287,11 @@ def readouts(out: Path, label: str, config_path: str, resources, run: Path, cdm:
     torch.set_num_threads(1)
     from subslope.nre.inputs import InputTransform
     from subslope.nre.train import load_estimator
-    from subslope.stages.calibrate import safe_threshold
     from subslope.stages.hst import hst_profiles
     from subslope.stages.simulate import attach_light_fit
     from subslope.stats import calibration as cal
     from subslope.stats import intervals as iv
+    from subslope.stats.calibration import safe_threshold
 
     model, meta = load_estimator(run / "model.pt")
     light_fit = InputTransform.from_json(meta.get("inputs")).needs_light

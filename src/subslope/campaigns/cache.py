@@ -22,8 +22,8 @@ from typing import Any
 
 from subslope import config as _config
 from subslope.io.shard_cache import MANIFEST
+from subslope.plan import shard_job_config, shard_jobs
 from subslope.stages.domain import lens_light_fit_key
-from subslope.stages.plan import shard_job_config, shard_jobs
 from subslope.stages.simulate import shard_cache_key
 
 __all__ = [
@@ -100,7 +100,7 @@ def campaigns_in_use(
 ) -> list[Campaign]:
     """The campaigns of the config ``files`` (each read with its layers, as
     ``--configfile``) and of their systematics variants, validated."""
-    from subslope.stages.systematics import read_variants
+    from subslope.campaigns.systematics import read_variants
 
     campaigns = []
     for file in files:

@@ -9,7 +9,7 @@ This script draws ``--n`` train systems (the reduced config's sources: both cata
 folders, renormalised to 20.5-22.5 mag), renders their smooth models with the stamps
 as they are and cleaned, and prints the distribution of the mask fraction.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/placement_mask.py --n 200
+    OMP_NUM_THREADS=1 .venv/bin/python studies/placement_mask.py --n 200
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ the reduced config (subhalos on the arc of their smooth model, LoS off), compute
 c in float64 from the members and prints |κ̄ c| (arcsec) per bin of the label γ beside
 the source-position prior (±0.1″). The ``mass_centroid`` sheet leaves none.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sheet_centre.py --n 200
+    OMP_NUM_THREADS=1 .venv/bin/python studies/sheet_centre.py --n 200
 """
 
 from __future__ import annotations

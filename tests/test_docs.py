@@ -1,0 +1,76 @@
+"""The documents' three homes: a short front page, reference pages without experiment
+records or commit hashes, an index for every script folder and for the notebook."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from tests.conftest import REPO_ROOT
+
+DOCS = REPO_ROOT / "docs"
+#: A short (7–12 digits) or full commit hash: hexadecimal with a digit and a letter.
+HASH = re.compile(r"\b(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])(?:[0-9a-f]{7,12}|[0-9a-f]{40})\b")
+
+
+def _reference_documents():
+    pages = [REPO_ROOT / "README.md", REPO_ROOT / "CONTRIBUTING.md"]
+    return pages + [p for p in sorted(DOCS.rglob("*.md")) if "notebook" not in p.parts]
+
+
+@pytest.mark.parametrize("path", _reference_documents(), ids=lambda p: p.name)
+def test_no_commit_hash_outside_the_notebook(path):
+    hits = [
+        f"{path.name}:{n}: {m}"
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        for m in HASH.findall(line)
+    ]
+    assert not hits, "commit hashes belong in docs/notebook/:\n" + "\n".join(hits)
+
+
+def test_hash_pattern_finds_commits_and_spares_config_hashes():
+    assert HASH.findall("at 0a6ce62, full 14e2df2") == ["0a6ce62", "14e2df2"]
+    assert not HASH.findall("config hash `811bc79c399275f3`, sha256 of ... deadbeef")
+
+
+def test_readme_is_a_front_page():
+    text = (REPO_ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 120
+    assert "docs/results.md" in text and "docs/index.md" in text
+    assert "bash scripts/setup_env.sh && .venv/bin/snakemake --cores 2" in text
+    assert "bash scripts/setup_env.sh && .venv/bin/python -m pytest" in text
+
+
+@pytest.mark.parametrize("folder", ["benchmarks", "studies"])
+def test_every_script_is_in_its_folder_index(folder):
+    index = (REPO_ROOT / folder / "README.md").read_text(encoding="utf-8")
+    scripts = [
+        p.name
+        for p in sorted((REPO_ROOT / folder).iterdir())
+        if p.suffix in (".py", ".sh") and not p.name.startswith("_")
+    ]
+    assert scripts
+    missing = [name for name in scripts if f"`{name}`" not in index]
+    assert not missing, f"{folder}/README.md does not list {missing}"
+
+
+def test_notebook_entries_are_dated_and_listed():
+    notebook = DOCS / "notebook"
+    index = (notebook / "README.md").read_text(encoding="utf-8")
+    entries = sorted(p.name for p in notebook.glob("*.md") if p.name != "README.md")
+    assert entries
+    bad = [e for e in entries if not re.match(r"\d{4}-\d\d-\d\d-[a-z0-9-]+\.md$", e)]
+    assert not bad, bad
+    missing = [e for e in entries if f"({e})" not in index]
+    assert not missing, f"docs/notebook/README.md does not list {missing}"
+    for entry in entries:
+        first = (notebook / entry).read_text(encoding="utf-8").splitlines()[0]
+        assert first.startswith(f"# {entry[:10]}: "), (entry, first)
+
+
+def test_index_names_every_page():
+    index = (DOCS / "index.md").read_text(encoding="utf-8")
+    pages = [p.name for p in DOCS.glob("*.md") if p.name != "index.md"]
+    missing = [p for p in pages if f"({p})" not in index]
+    assert not missing, f"docs/index.md does not link {missing}"
