@@ -380,8 +380,8 @@ def test_summary_sections(tmp_path):
         assert f"## {section}" in text, section
     assert "abc123" in text and "2.510 (−0.040, +0.050)" in text and "ρ = 0.800" in text
     assert "**Over-confident at N = 13**: held-out coverage more than 2σ below" in text
-    assert "moves the stack γ_MLE of nfw by +0.100 ± 0.000" in text
-    assert "**The subhalos of tnfw are not seen by the estimator**" in text
+    assert "moves the stack γ_MLE of nfw a = 1 by +0.100 ± 0.000" in text
+    assert "**The subhalos of tnfw a = 1 are not seen by the estimator**" in text
     assert "null_nosub outside [1.10, 1.70]; null_nosub_los inside [2.40, 2.60]" in text
     folder = out.parent
     res = pd.read_csv(folder / "hst_result.csv")
@@ -455,3 +455,16 @@ def test_cli_has_campaign_commands(capsys):
         ]
     )
     assert args.cdm is None and args.hst is None
+
+
+def test_leave_one_out_names_the_lens_that_carries_the_stack():
+    from subslope.stages.hst import leave_one_out
+
+    g = np.linspace(1.1, 2.9, 91)
+    centres = [2.0] * 5 + [2.8]
+    profiles = np.array([-((g - c) ** 2) / 0.1 for c in centres])
+    rows = leave_one_out([f"L{k}" for k in range(6)], profiles, g, 0.5, 5)
+    shifts = {r["left_out"]: r["shift"] for r in rows}
+    assert min(shifts, key=shifts.get) == "L5" and shifts["L5"] < -0.1
+    assert all(abs(shifts[f"L{k}"]) < abs(shifts["L5"]) for k in range(5))
+    assert all(r["n_images"] == 5 and r["lower"] <= r["mle"] <= r["upper"] for r in rows)

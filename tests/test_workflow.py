@@ -51,8 +51,10 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         sim[s]["n_shards"] for s in ("validation", "test_epl", *null)
     )
     assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
-    assert stats["subhalo_free_profiles"] == sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"]
+    assert stats["subhalo_free_profiles"] == stats["simulate_cdm_shard"]  # every multiplier
     assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
+    assert stats["signal_budget"] == 2 + len(null)  # shard 0 of train, test_epl, the nulls
+    assert stats["signal_budget_cdm"] == 2 * n_mult
     assert stats["fetch_data"] == 21  # one job per registered data file
     for rule in (
         "plot_hst_gallery",
@@ -65,6 +67,7 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         "cdm_visibility",
         "analyze_hst",
         "plot_validation",
+        "summarize_signal_budget",
         "write_summary",
         "all",
     ):
@@ -232,6 +235,7 @@ STAGE_RULES = {
     },
     "hst": {"analyze_hst"},
     "figures": {"plot_training_curves", "plot_validation"},
+    "signal_budget": {"signal_budget", "signal_budget_cdm", "summarize_signal_budget"},
     "summary": {"write_summary"},
 }
 
@@ -261,6 +265,9 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
         "cdm_visibility": 1,
         "analyze_hst": 1,
         "plot_validation": 1,
+        "signal_budget": 4,  # shard 0 of train, test_epl and the two null scenes
+        "signal_budget_cdm": 2,  # shard 0 of nfw and tnfw at each multiplier
+        "summarize_signal_budget": 1,
         "write_summary": 1,
         "all": 1,
     }
@@ -270,7 +277,7 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
     } == expected, stats
 
 
-@pytest.mark.parametrize("off", ["train", "calibrate", "cdm_grid"])
+@pytest.mark.parametrize("off", ["train", "calibrate", "cdm_grid", "signal_budget"])
 def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
     """A stage switched off runs none of its rules, nor do the stages that need it."""
     needs = {
@@ -291,7 +298,7 @@ def test_dry_run_disabled_stage_runs_no_rule_of_it(workdir, data_dir, off):
             assert rules & set(stats), (stage, stats)
     if off == "cdm_grid":
         assert stats["analyze_hst"] == 1 and "measure_cdm_grid" not in stats
-        assert not {"subhalo_free_profiles", "cdm_visibility"} & set(stats)  # no a = 1 sets
+        assert not {"subhalo_free_profiles", "cdm_visibility"} & set(stats)  # no CDM grid
     if off == "calibrate":  # figures still plot the training curves and write the summary
         assert stats["write_summary"] == 1 and "plot_validation" not in stats
 
@@ -398,6 +405,32 @@ def test_results_page_of_the_tiny_campaign(tiny_run, campaign, tmp_path):
     page = write_results_page(tiny_run, tmp_path / "results.md").read_text()
     assert "--configfile config/tiny.yaml" in page and "## Verdict" in page
     assert "### HST measurement" in page and "not recorded" not in page
+
+
+@pytest.mark.slow
+def test_tiny_campaign_signal_budget_and_leave_one_out(tiny_run):
+    import pandas as pd
+
+    rows = pd.concat(pd.read_csv(p) for p in (tiny_run / "signal_budget").rglob("shard_0.csv"))
+    assert set(rows["scene"]) == {
+        "train",
+        "test_epl",
+        "nfw",
+        "tnfw",
+        "null_nosub",
+        "null_nosub_los",
+    }
+    assert np.isfinite(rows[["dchi2_fixed", "dchi2_refit"]]).all().all()
+    assert (rows["dchi2_refit"] <= rows["dchi2_fixed"] * (1 + 1e-9)).all()
+    assert (rows["dchi2_refit"] >= 0).all()
+    nulls = rows[rows["scene"].str.startswith("null")]
+    assert (nulls["dchi2_fixed"] == 0).all()
+    table = pd.read_csv(tiny_run / "signal_budget" / "signal_budget.csv")
+    assert len(table) == 6 and (tiny_run / "figures" / "signal_budget.png").stat().st_size > 0
+    loo = pd.read_csv(tiny_run / "analyze_hst" / "leave_one_out.csv")
+    assert len(loo) == 2 and set(loo["n_images"]) == {1}
+    summary = (tiny_run / "summary.md").read_text()
+    assert "## Signal budget" in summary and "left out" in summary
 
 
 @pytest.mark.slow

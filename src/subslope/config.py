@@ -231,6 +231,7 @@ STAGE_NEEDS: dict[str, tuple[str, ...]] = {
     "null_tests": ("calibrate",),
     "hst": ("calibrate",),
     "figures": ("train",),
+    "signal_budget": ("simulate",),
     "summary": ("figures",),
 }
 

@@ -268,6 +268,13 @@ def benchmark_files():
         out["calibrate"].append("results/benchmarks/summarize_coverage.tsv")
     if STAGE_ON["cdm_grid"]:
         out["cdm_grid"] = ["results/benchmarks/measure_cdm_grid.tsv"]
+    if STAGE_ON["signal_budget"]:
+        out["signal_budget"] = [
+            budget_path(job)
+            .replace("results/signal_budget/", "results/benchmarks/signal_budget/")
+            .replace(".csv", ".tsv")
+            for job in budget_jobs()
+        ] + ["results/benchmarks/summarize_signal_budget.tsv"]
     if null_tests_on():
         out["null_tests"] = ["results/benchmarks/null_tests.tsv"]
     if halo_free_on():
@@ -320,6 +327,8 @@ def all_targets():
         targets += rules.cdm_visibility.output
     if STAGE_ON["hst"]:
         targets += rules.analyze_hst.output
+    if STAGE_ON["signal_budget"]:
+        targets += rules.summarize_signal_budget.output
     if STAGE_ON["figures"]:
         targets += rules.plot_training_curves.output
         if STAGE_ON["calibrate"]:
@@ -386,7 +395,6 @@ VISIBILITY_JOBS = [
     and STAGE_ON["cdm_grid"]
     and config["null_tests"]["cdm_visibility"]
     and job["scene"] in (CDM["nfw_scene"], CDM["tnfw_scene"])
-    and job["multiplier"] == 1.0
 ]
 
 
@@ -415,6 +423,7 @@ def summary_inputs(wildcards):
         inputs["training_log"] = rules.train_estimator.output.log_csv
     if STAGE_ON["hst"]:
         inputs["hst"] = rules.analyze_hst.output.csv
+        inputs["leave_one_out"] = rules.analyze_hst.output.loo
     if STAGE_ON["domain"]:
         inputs["domain"] = rules.check_domain.output.csv
     if STAGE_ON["cdm_grid"]:
@@ -422,4 +431,6 @@ def summary_inputs(wildcards):
     if STAGE_ON["calibrate"]:
         inputs["calibration"] = rules.summarize_coverage.output.csv
         inputs["trend"] = rules.plot_validation.output.trend
+    if STAGE_ON["signal_budget"]:
+        inputs["signal_budget"] = rules.summarize_signal_budget.output.csv
     return inputs

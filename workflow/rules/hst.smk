@@ -12,6 +12,7 @@ rule analyze_hst:
     output:
         h5=update("results/analyze_hst/profiles.h5"),
         csv=update("results/analyze_hst/intervals.csv"),
+        loo=update("results/analyze_hst/leave_one_out.csv"),
         fig5_pdf=update("results/figures/fig5_hst_profiles.pdf"),
         fig5_png=update(
             report(

@@ -102,7 +102,7 @@ rule halo_free_null:
         "../scripts/halo_free_null.py"
 
 
-# Do the CDM subhalos reach the estimator? The a = 1 shards of the CDM scenes re-rendered
+# Do the CDM subhalos reach the estimator? The shards of the CDM scenes (every multiplier) re-rendered
 # without their subhalos (line-of-sight halos, lens, source, light and noise seeds as
 # stored), and each set's stack gamma_MLE compared with its original's
 # (subslope.stages.null_tests.visibility). Off with null_tests.cdm_visibility: false.
@@ -136,9 +136,14 @@ rule cdm_visibility:
     resources:
         mem_mb=2000,
     params:
-        # [scene, profiles file, re-rendered profiles file] of every a = 1 CDM shard
+        # [scene, multiplier, profiles file, re-rendered profiles file] of every CDM shard
         groups=[
-            [job["scene"], profile_path(job), subhalo_free_path(job)]
+            [
+                job["scene"],
+                job["multiplier"],
+                profile_path(job),
+                subhalo_free_path(job),
+            ]
             for job in VISIBILITY_JOBS
         ],
     script:

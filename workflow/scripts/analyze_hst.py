@@ -41,6 +41,7 @@ try:
         tnfw_scene=snakemake.params.tnfw_scene,
         domain_csv=snakemake.input.domain or None,
         config=snakemake.config,
+        loo_csv=snakemake.output.loo,
     )
     logging.info("intervals:\n%s", table.to_string())
 except Exception:

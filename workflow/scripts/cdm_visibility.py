@@ -1,5 +1,5 @@
-"""Snakemake script of rule cdm_visibility: the stack gamma_MLE of the a = 1 CDM sets with
-and without their subhalos, set by set."""
+"""Snakemake script of rule cdm_visibility: the stack gamma_MLE of the CDM sets of every
+multiplier with and without their subhalos, set by set."""
 
 import logging
 
@@ -9,8 +9,8 @@ from subslope.stages.null_tests.visibility import cdm_visibility
 log_to_file(snakemake.log[0])
 try:
     files = {}
-    for scene, original, removed in snakemake.params.groups:
-        pair = files.setdefault(scene, ([], []))
+    for scene, multiplier, original, removed in snakemake.params.groups:
+        pair = files.setdefault((scene, float(multiplier)), ([], []))
         pair[0].append(original)
         pair[1].append(removed)
     table = cdm_visibility(files, snakemake.output.csv)

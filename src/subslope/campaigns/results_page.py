@@ -82,19 +82,40 @@ def _cdm(results: Path) -> list[str]:
     rows = _rows(results, "cdm_visibility.csv")
     if not rows:
         return []
-    seen = [r["scene"] for r in rows if _true(r["visible"])]
-    unseen = [r["scene"] for r in rows if not _true(r["visible"])]
+
+    def label(r):
+        return f"{r['scene']} a = {_num(r.get('multiplier') or 1.0):g}"
+
+    seen = [label(r) for r in rows if _true(r["visible"])]
+    unseen = [label(r) for r in rows if not _true(r["visible"])]
     out = []
     if unseen:
         out.append(
-            f"The CDM subhalos of {', '.join(unseen)} at a = 1 do not move the estimator "
-            "(paired shift against the same sets without subhalos consistent with 0): the "
-            "a = 1 band of figure 4 is the estimator's reading of subhalo-free images, not "
-            "a prediction of the subhalos' slope."
+            f"The CDM subhalos of {', '.join(unseen)} do not move the estimator (paired "
+            "shift against the same sets without subhalos consistent with 0): there figure "
+            "4 shows the estimator's reading of subhalo-free images, not a prediction of "
+            "the subhalos' slope."
         )
     if seen:
-        out.append(f"The CDM subhalos of {', '.join(seen)} at a = 1 move the estimator.")
+        out.append(f"The CDM subhalos of {', '.join(seen)} move the estimator.")
     return out
+
+
+def _signal(results: Path) -> list[str]:
+    rows = [
+        r for r in _rows(results, "signal_budget/signal_budget.csv") if _num(r["fixed_p50"]) > 0
+    ]
+    if not rows:
+        return []
+    parts = [
+        f"{r['scene']}{' a = ' + format(_num(r['multiplier']), 'g') if r['multiplier'] else ''}"
+        f" {_num(r['refit_p50']):.3g} ({_num(r['fixed_p50']):.3g} with the smooth model fixed)"
+        for r in rows
+    ]
+    return [
+        "The ideal observer's Δχ² of the subhalos per image, median after a linearised refit "
+        f"of the smooth model: {'; '.join(parts)} (≈ 1 invisible, ≳ 25 a detection)."
+    ]
 
 
 def _hst(results: Path) -> list[str]:
@@ -139,7 +160,8 @@ def _domain(results: Path) -> list[str]:
 def verdicts(results) -> list[str]:
     """One sentence per part of the campaign, computed from the CSVs of ``results``."""
     results = Path(results)
-    return _in_distribution(results) + _cdm(results) + _hst(results) + _domain(results)
+    parts = (_in_distribution, _signal, _cdm, _hst, _domain)
+    return [line for part in parts for line in part(results)]
 
 
 MEANING = """\

@@ -78,6 +78,7 @@ SUMMARY_SECTIONS = (
     "Configuration",
     "Simulations against the data",
     "HST measurement",
+    "Signal budget",
     "CDM predictions (a = 1)",
     "Calibration and coverage",
     "Null tests",
@@ -339,25 +340,29 @@ def _visibility_lines(folder: Path, visibility_csv) -> list[str]:
     table = pd.read_csv(visibility_csv)
     write_text(folder / "cdm_visibility.csv", table.to_csv(index=False))
     visible = table["visible"].astype(str).str.lower() == "true"
+    if "multiplier" not in table:
+        table.insert(1, "multiplier", 1.0)
+    label = [f"{r.scene} a = {float(r.multiplier):g}" for r in table.itertuples()]
+    table["label"] = label
     seen = [
-        f"{r.scene} by {r.shift_mean:+.3f} ± {r.shift_mean_se:.3f} on average (Wilcoxon "
+        f"{r.label} by {r.shift_mean:+.3f} ± {r.shift_mean_se:.3f} on average (Wilcoxon "
         f"p = {r.wilcoxon_p:.2g}; the same sets without subhalos: median "
         f"{r.subhalo_free_mle_p50:.2f})"
         for r in table[visible].itertuples()
     ]
-    blind = table.loc[~visible, "scene"].tolist()
+    blind = table.loc[~visible, "label"].tolist()
     verdict = (
         f"Removing the subhalos moves the stack γ_MLE of {'; of '.join(seen)}. " if seen else ""
     )
     if blind:
         verdict += (
             f"**The subhalos of {', '.join(blind)} are not seen by the estimator**: removing "
-            "them leaves the stack γ_MLE where it was (Wilcoxon p ≥ 0.05), so that band is "
-            "the estimator's reading of subhalo-free images, not a measurement of the "
-            "subhalos' slope, and it cannot order NFW against tNFW."
+            "them leaves the stack γ_MLE where it was (Wilcoxon p ≥ 0.05), so there the grid "
+            "is the estimator's reading of subhalo-free images, not a measurement of the "
+            "subhalos' slope, and it cannot order NFW against tNFW or concentrations."
         )
     return [
-        "\nThe same a = 1 sets re-rendered without their subhalos (line-of-sight halos, "
+        "\nThe same sets re-rendered without their subhalos (line-of-sight halos, "
         "lens, source, light and noise seeds as stored; `shift`: the stack γ_MLE with the "
         f"subhalos minus without, per set). {verdict}\n",
         _md_table(table.to_dict("records"), list(VISIBILITY_COLUMNS)),
@@ -409,6 +414,44 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
     ]
 
 
+def _leave_one_out_lines(loo_csv) -> list[str]:
+    """The combined γ_MLE with each HST lens left out (results/analyze_hst/leave_one_out.csv)."""
+    import pandas as pd
+
+    if not loo_csv:
+        return []
+    table = pd.read_csv(loo_csv)
+    if not len(table):
+        return []
+    top = table.loc[table["shift"].abs().idxmax()]
+    return [
+        "\nThe combined stack with each lens left out (`shift`: its γ_MLE minus that of "
+        f"all lenses; threshold of {int(table['n_images'].iloc[0])}-image stacks). The "
+        f"largest shift comes from leaving out {top['left_out']} ({top['shift']:+.3f}); "
+        "SDSSJ0946+1006 is the one lens with a published dense subhalo:\n",
+        _md_table(table.to_dict("records"), ["left_out", "mle", "lower", "upper", "shift"]),
+    ]
+
+
+def _signal_section(signal_csv) -> list[str]:
+    """The signal budget of every scene (results/signal_budget/signal_budget.csv)."""
+    import pandas as pd
+
+    if not signal_csv:
+        return ["Stage `signal_budget` not run.\n"]
+    table = pd.read_csv(signal_csv)
+    table["multiplier"] = table["multiplier"].fillna("")
+    return [
+        "The ideal observer's Δχ² of each scene's subhalos per image (16/50/84%), inside "
+        "the estimator's mask, with the smooth model fixed and after a linearised refit of "
+        "every lens, lens-light, sky and source-position parameter (source morphology "
+        "fixed, so both are upper bounds); `stack_refit` is the refitted Δχ² of a stack "
+        "(the stack size × the median). Δχ² ≈ 1 is invisible, ≳ 25 an individual "
+        "detection (figures/signal_budget.png):\n",
+        _md_table(table.to_dict("records"), list(table.columns)),
+    ]
+
+
 def _trend_section(folder: Path, trend: Mapping[str, float] | None) -> list[str]:
     if not trend:
         write_csv(folder / "trend.csv", [], ["rho", "p_value", "n"])
@@ -440,6 +483,7 @@ def write_summary(
     config_hash: str,
     config_file: str = "",
     hst_csv=None,
+    loo_csv=None,
     cdm_csv=None,
     calibration_csv=None,
     domain_csv=None,
@@ -447,6 +491,7 @@ def write_summary(
     halo_free_csv=None,
     bias_csv=None,
     visibility_csv=None,
+    signal_csv=None,
     trend: Mapping[str, float] | None = None,
     benchmarks: Mapping[str, Sequence] | None = None,
     nfw_scene: str = "nfw",
@@ -454,7 +499,8 @@ def write_summary(
 ) -> Path:
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
     ``coverage.csv``, ``null_tests.csv``, ``halo_free.csv``, ``nsub_bias.csv``,
-    ``cdm_visibility.csv``, ``trend.csv`` and ``stage_runtime.csv``. Any input may be
+    ``cdm_visibility.csv``, ``trend.csv`` and ``stage_runtime.csv`` (``signal_csv``: the
+    signal-budget table, shown as it is). Any input may be
     None (its stage was off): the section then says so."""
     out_md = Path(out_md)
     folder = out_md.parent
@@ -465,7 +511,8 @@ def write_summary(
     sections = [
         ["\n".join(items) + "\n"],
         _domain_section(domain_csv),
-        _hst_section(folder, hst_csv, null_csv),
+        _hst_section(folder, hst_csv, null_csv) + _leave_one_out_lines(loo_csv),
+        _signal_section(signal_csv),
         _cdm_section(folder, cdm_csv, (nfw_scene, tnfw_scene), visibility_csv),
         _calibration_section(folder, calibration_csv),
         _null_section(folder, null_csv),

@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 #: Columns of ``cdm_visibility.csv``, one row per CDM scene.
 VISIBILITY_COLUMNS = (
     "scene",
+    "multiplier",
     "n_sets",
     "stack_mle_p50",
     "subhalo_free_mle_p50",
@@ -67,11 +68,13 @@ def paired_stack_mles(original: Sequence, removed: Sequence) -> tuple[np.ndarray
     return set_stacks(a)["mle"], set_stacks(b)["mle"]
 
 
-def visibility_row(scene: str, with_subhalos, without, alpha: float = 0.05) -> dict[str, Any]:
-    """The :data:`VISIBILITY_COLUMNS` row of one scene from the paired stack γ_MLE of its
-    sets with and without their subhalos. ``visible``: the Wilcoxon signed-rank test
-    rejects a zero shift at level ``alpha`` (a scene whose sets never move is not
-    visible, p = 1)."""
+def visibility_row(
+    scene: str, with_subhalos, without, alpha: float = 0.05, multiplier: float = 1.0
+) -> dict[str, Any]:
+    """The :data:`VISIBILITY_COLUMNS` row of one scene and concentration multiplier from
+    the paired stack γ_MLE of its sets with and without their subhalos. ``visible``: the
+    Wilcoxon signed-rank test rejects a zero shift at level ``alpha`` (a scene whose sets
+    never move is not visible, p = 1)."""
     from scipy.stats import wilcoxon
 
     x = np.asarray(with_subhalos, dtype=np.float64)
@@ -81,6 +84,7 @@ def visibility_row(scene: str, with_subhalos, without, alpha: float = 0.05) -> d
     p = float(wilcoxon(x, y).pvalue) if np.any(shift != 0) else 1.0
     return {
         "scene": scene,
+        "multiplier": float(multiplier),
         "n_sets": n,
         "stack_mle_p50": float(np.median(x)) if n else math.nan,
         "subhalo_free_mle_p50": float(np.median(y)) if n else math.nan,
@@ -94,14 +98,17 @@ def visibility_row(scene: str, with_subhalos, without, alpha: float = 0.05) -> d
 
 
 def cdm_visibility(files: Mapping[str, tuple[Sequence, Sequence]], out_csv, *, alpha: float = 0.05):
-    """Table ``cdm_visibility.csv`` (:data:`VISIBILITY_COLUMNS`): ``files[scene]`` is the
-    pair (profiles files of the scene's a = 1 shards, profiles files of their subhalo-free
-    re-renders). Returns the table."""
+    """Table ``cdm_visibility.csv`` (:data:`VISIBILITY_COLUMNS`): ``files[key]`` is the
+    pair (profiles files of the shards of one scene and multiplier, profiles files of
+    their subhalo-free re-renders), ``key`` a ``(scene, multiplier)`` pair or a scene
+    name (multiplier 1). Returns the table."""
     import pandas as pd
 
     rows = []
-    for scene, (original, removed) in files.items():
-        row = visibility_row(scene, *paired_stack_mles(original, removed), alpha=alpha)
+    for key, (original, removed) in files.items():
+        scene, mult = key if isinstance(key, tuple) else (key, 1.0)
+        paired = paired_stack_mles(original, removed)
+        row = visibility_row(scene, *paired, alpha=alpha, multiplier=float(mult))
         log.info("visibility %s: %s", scene, row)
         rows.append(row)
     table = pd.DataFrame(rows, columns=VISIBILITY_COLUMNS)

@@ -1,0 +1,277 @@
+"""Stage ``signal_budget``: how much signal the subhalos of each scene put into its images,
+for an ideal observer (rules signal_budget, summarize_signal_budget; docs/inference.md).
+
+For each of the first images of a shard, everything as stored: the noise-free image with
+and without its subhalos (line-of-sight halos, lens, lens light, sky and source kept), the
+per-pixel noise σ of the instrument (Poisson + sky + read noise of the subhalo-free
+image; the drizzle correlation whitened, :mod:`subslope.stats.signal`), and inside the
+estimator's mask (``training.mask_factor`` θ_E about the lens centre):
+
+- ``dchi2_fixed``: Δχ² of the difference with the smooth model known;
+- ``dchi2_refit``: what is left after a linearised refit of every smooth parameter the
+  scene has (:data:`SMOOTH_KEYS`, the multipoles in Cartesian components), whose
+  derivatives are central differences of the subhalo-free image.
+
+The source's morphology stays fixed, so both are upper bounds on what an analysis that
+also fits the source could see. An image without subhalos has Δχ² = 0 by definition.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from subslope.io.atomic import write_csv
+
+__all__ = [
+    "BUDGET_COLUMNS",
+    "SMOOTH_KEYS",
+    "budget_rows",
+    "signal_budget_shard",
+    "summarize_signal_budget",
+]
+
+log = logging.getLogger(__name__)
+
+#: Smooth parameters refitted, each with its central-difference step (arcsec, radians,
+#: magnitudes or e⁻/s, as the parameter); the multipoles are added as Cartesian pairs.
+SMOOTH_KEYS = {
+    "theta_e": 1e-3,
+    "gamma_ml": 1e-3,
+    "lens_e1": 1e-3,
+    "lens_e2": 1e-3,
+    "lens_x": 1e-3,
+    "lens_y": 1e-3,
+    "shear_g1": 1e-3,
+    "shear_g2": 1e-3,
+    "light_e1": 1e-3,
+    "light_e2": 1e-3,
+    "light_mag": 1e-3,
+    "light_n": 1e-3,
+    "light_r": 1e-3,
+    "sky_level": 1e-3,
+    "src_x": 1e-3,
+    "src_y": 1e-3,
+    "src_rotation": 1e-3,
+}
+#: Multipole orders and the (amplitude, angle) keys of each; step of each component.
+MULTIPOLES = ((3, "a3", "phi3"), (4, "a4", "phi4"))
+MULTIPOLE_STEP = 1e-4
+
+BUDGET_COLUMNS = (
+    "scene",
+    "multiplier",
+    "image",
+    "set_index",
+    "n_sub",
+    "gamma",
+    "dchi2_fixed",
+    "dchi2_refit",
+)
+
+
+def _perturbed(macro: dict[str, np.ndarray]) -> list[tuple[str, dict, dict]]:
+    """``(name, macro + step, macro − step)`` for every smooth direction of a one-image
+    ``macro``."""
+    out = []
+    for key, step in SMOOTH_KEYS.items():
+        if key in macro:
+            plus = {**macro, key: macro[key] + step}
+            minus = {**macro, key: macro[key] - step}
+            out.append((key, plus, minus))
+    for m, amp, ang in MULTIPOLES:
+        if amp not in macro or ang not in macro:
+            continue
+        cx = macro[amp] * np.cos(m * macro[ang])
+        cy = macro[amp] * np.sin(m * macro[ang])
+        for comp, (dx, dy) in (("c", (1.0, 0.0)), ("s", (0.0, 1.0))):
+            pair = []
+            for sign in (1.0, -1.0):
+                x = cx + sign * MULTIPOLE_STEP * dx
+                y = cy + sign * MULTIPOLE_STEP * dy
+                pair.append({**macro, amp: np.hypot(x, y), ang: np.arctan2(y, x) / m})
+            out.append((f"{amp}_{comp}", pair[0], pair[1]))
+    return out
+
+
+def _noise_weight(instrument) -> float:
+    """Kernel side weight ``w`` of the instrument's noise correlation (a range: its
+    midpoint, the images' per-image values being drawn from it)."""
+    from subslope.physics.instrument import noise_kernel_weight
+
+    rho = instrument.noise_correlation
+    rho = 0.5 * (rho[0] + rho[1]) if isinstance(rho, tuple) else float(rho)
+    return noise_kernel_weight(rho)
+
+
+def _image_budget(inp: dict[str, Any], mask_factor: float) -> tuple[float, float]:
+    """``(dchi2_fixed, dchi2_refit)`` of the one image of the stored inputs ``inp``."""
+    import torch
+
+    from subslope.physics.grid import pixel_grid
+    from subslope.physics.instrument import noise_sigma_map
+    from subslope.render.pipeline import render
+    from subslope.stats.signal import delta_chi2, refit_delta_chi2
+
+    def image(macro, subhalos):
+        out = render(
+            macro,
+            inp["psf"],
+            inp["settings"],
+            sources=inp["sources"],
+            subhalos=subhalos,
+            los=inp["los"],
+            sheet_centre=inp["sheet_centre"],
+        )[0]
+        return out.detach().cpu().to(torch.float64)
+
+    macro = inp["macro"]
+    without = image(macro, None)
+    diff = (image(macro, inp["subhalos"]) - without).numpy()
+    sigma = noise_sigma_map(without, inp["instrument"]).numpy()
+    npix = diff.shape[-1]
+    x, y = pixel_grid(npix, inp["instrument"].pixel_scale, dtype=torch.float64)
+    r2 = (x.numpy() - macro["lens_x"][0]) ** 2 + (y.numpy() - macro["lens_y"][0]) ** 2
+    mask = r2 <= (mask_factor * macro["theta_e"][0]) ** 2
+    w = _noise_weight(inp["instrument"])
+    # the scale of a column does not change its span: differences, not derivatives
+    jac = [(image(plus, None) - image(minus, None)).numpy() for _, plus, minus in _perturbed(macro)]
+    fixed = delta_chi2(diff, sigma, mask, w)
+    refit = refit_delta_chi2(
+        diff, np.stack(jac) if jac else np.zeros((0, *diff.shape)), sigma, mask, w
+    )
+    return fixed, refit
+
+
+def budget_rows(
+    shard_path, n_images: int, *, mask_factor: float, scene: str, multiplier=None
+) -> list[dict[str, Any]]:
+    """One row (:data:`BUDGET_COLUMNS`) per image of the first ``n_images`` of a shard."""
+    from subslope.io.shards import open_shard
+    from subslope.simulation.rerender import stored_inputs
+
+    rows = []
+    with open_shard(shard_path) as shard:
+        n = min(int(n_images), len(shard))
+        has_subhalos = shard.attrs["subhalo_profile"] != "none"
+        for i in range(n):
+            inp = stored_inputs(shard, [i])
+            macro = inp["macro"]
+            if has_subhalos and int(macro["n_sub"][0]) > 0:
+                fixed, refit = _image_budget(inp, mask_factor)
+            else:
+                fixed = refit = 0.0
+            rows.append(
+                {
+                    "scene": scene,
+                    "multiplier": "" if multiplier is None else float(multiplier),
+                    "image": i,
+                    "set_index": int(macro["set_index"][0]) if "set_index" in macro else i,
+                    "n_sub": int(macro["n_sub"][0]) if "n_sub" in macro else 0,
+                    "gamma": float(macro["gamma_sub"][0]) if "gamma_sub" in macro else math.nan,
+                    "dchi2_fixed": fixed,
+                    "dchi2_refit": refit,
+                }
+            )
+    return rows
+
+
+def signal_budget_shard(
+    shard_path, out_csv, n_images: int, *, mask_factor: float, scene: str, multiplier=None
+) -> Path:
+    """Rule signal_budget: :func:`budget_rows` of one shard written to ``out_csv``."""
+    rows = budget_rows(
+        shard_path, n_images, mask_factor=mask_factor, scene=scene, multiplier=multiplier
+    )
+    log.info(
+        "%s: median dchi2 fixed %.3g, refit %.3g over %d images",
+        scene,
+        float(np.median([r["dchi2_fixed"] for r in rows])) if rows else math.nan,
+        float(np.median([r["dchi2_refit"] for r in rows])) if rows else math.nan,
+        len(rows),
+    )
+    return write_csv(out_csv, rows, list(BUDGET_COLUMNS))
+
+
+SUMMARY_COLUMNS = (
+    "scene",
+    "multiplier",
+    "n_images",
+    "fixed_p16",
+    "fixed_p50",
+    "fixed_p84",
+    "refit_p16",
+    "refit_p50",
+    "refit_p84",
+    "stack_refit",
+)
+
+
+def _label(scene: str, multiplier) -> str:
+    return scene if multiplier in ("", None) or _isnan(multiplier) else f"{scene} a={multiplier:g}"
+
+
+def _isnan(value) -> bool:
+    try:
+        return math.isnan(float(value))
+    except (TypeError, ValueError):
+        return False
+
+
+def summarize_signal_budget(
+    csv_paths: Sequence, out_csv, fig_stem, *, stack_size: int, run_name: str
+):
+    """The table of the signal budget, one row per scene (and multiplier): the 16/50/84%
+    of Δχ² per image with the smooth model fixed and refitted, and ``stack_refit``, the
+    refitted Δχ² of a stack of ``stack_size`` images (``stack_size`` × the median, Δχ²
+    adding over independent images); and its figure. Returns the table (pandas)."""
+    import pandas as pd
+
+    frames = [pd.read_csv(p) for p in csv_paths]
+    data = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=BUDGET_COLUMNS)
+    rows = []
+    for (scene, mult), group in data.groupby(["scene", data["multiplier"].fillna(-1)], sort=False):
+        fixed, refit = group["dchi2_fixed"].to_numpy(), group["dchi2_refit"].to_numpy()
+        q = np.percentile
+        rows.append(
+            {
+                "scene": scene,
+                "multiplier": "" if mult == -1 else float(mult),
+                "n_images": len(group),
+                "fixed_p16": float(q(fixed, 16)),
+                "fixed_p50": float(q(fixed, 50)),
+                "fixed_p84": float(q(fixed, 84)),
+                "refit_p16": float(q(refit, 16)),
+                "refit_p50": float(q(refit, 50)),
+                "refit_p84": float(q(refit, 84)),
+                "stack_refit": float(stack_size * np.median(refit)),
+            }
+        )
+    table = pd.DataFrame(rows, columns=list(SUMMARY_COLUMNS))
+    write_csv(out_csv, table.to_dict("records"), list(SUMMARY_COLUMNS))
+    from subslope.figures.save import save_figure
+    from subslope.figures.signal import signal_budget_figure
+
+    labels = [_label(r["scene"], r["multiplier"]) for r in rows]
+    key = data["multiplier"].fillna(-1)
+    groups = [
+        data[
+            (data["scene"] == r["scene"])
+            & (key == (-1 if r["multiplier"] == "" else r["multiplier"]))
+        ]
+        for r in rows
+    ]
+    fig = signal_budget_figure(
+        labels,
+        [g["dchi2_fixed"].to_numpy() for g in groups],
+        [g["dchi2_refit"].to_numpy() for g in groups],
+        run_name=run_name,
+        source="results/signal_budget/signal_budget.csv",
+    )
+    save_figure(fig, fig_stem, run_name=run_name)
+    return table

@@ -1,0 +1,91 @@
+"""The ideal observer's signal: how far a perturbation of an image stands above its noise.
+
+For a noise-free image pair that differs by ``d = I_with − I_without`` (e⁻/s per pixel)
+under Gaussian pixel noise of standard deviation ``σ`` (per pixel) the best test of "is
+the perturbation there?" has the noise-weighted squared norm
+
+    Δχ² = dᵀ C⁻¹ d,       C = diag(σ) K Kᵀ diag(σ),
+
+summed over the pixels the estimator sees. ``K`` is the noise-correlation filter of the
+instrument: the separable kernel ``(w, 1, w)/√(1 + 2w²)`` along each pixel axis
+(drizzled pixels; ``w = 0``: independent pixels, ``K = 1``). :func:`whiten` applies
+``K⁻¹`` to ``d/σ`` by division in Fourier space (periodic boundary: exact away from the
+image border, which the estimator's mask never reaches), so that
+``Δχ² = Σ_mask (K⁻¹ d/σ)²`` (:func:`delta_chi2`). Restricting the whitened field to the
+mask, rather than inverting the masked covariance, is the one approximation.
+
+A real analysis also refits the smooth model. To first order a change ``δp`` of its
+parameters adds ``J δp`` to the image (``J``: derivatives of the subhalo-free image), so
+the part of ``d`` that no smooth change can absorb is the residual of the weighted
+least-squares fit of ``d`` by the columns of ``J`` (:func:`refit_delta_chi2`); its Δχ² is
+at most the fixed-model one. With the source morphology held fixed both are upper bounds
+of what an analysis with a free source could detect.
+
+Δχ² ≈ 1 is invisible, ≳ 25 an individual detection for a perfect model; over independent
+images Δχ² adds (:func:`stack_sums`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["delta_chi2", "refit_delta_chi2", "stack_sums", "whiten"]
+
+
+def _axis_transfer(n: int, w: float) -> np.ndarray:
+    """Discrete Fourier transform of the periodic kernel ``(w, 1, w)/√(1 + 2w²)`` of
+    length ``n``: ``(1 + 2w cos 2πk/n)/√(1 + 2w²)``, positive for ``w < 1/2``."""
+    k = np.fft.fftfreq(n)
+    return (1.0 + 2.0 * w * np.cos(2.0 * np.pi * k)) / np.sqrt(1.0 + 2.0 * w * w)
+
+
+def whiten(field, sigma, w: float = 0.0) -> np.ndarray:
+    """``K⁻¹(field/σ)`` over the last two axes, float64: the field in units of the noise,
+    decorrelated (module docstring). ``w``: side weight of the correlation kernel
+    (:func:`subslope.physics.instrument.noise_kernel_weight` of the lag-1 correlation),
+    in ``[0, 1/2)``."""
+    if not 0.0 <= w < 0.5:
+        raise ValueError(f"kernel side weight w must be in [0, 0.5), got {w!r}")
+    sigma = np.asarray(sigma, dtype=np.float64)
+    if np.any(~(sigma > 0)):
+        raise ValueError("sigma must be positive and finite at every pixel")
+    x = np.asarray(field, dtype=np.float64) / sigma
+    if w == 0.0:
+        return x
+    ny, nx = x.shape[-2:]
+    transfer = _axis_transfer(ny, w)[:, None] * _axis_transfer(nx, w)[None, :]
+    return np.real(np.fft.ifft2(np.fft.fft2(x, axes=(-2, -1)) / transfer, axes=(-2, -1)))
+
+
+def delta_chi2(diff, sigma, mask, w: float = 0.0) -> float:
+    """``Σ_mask (K⁻¹ diff/σ)²`` of one image ``(H, W)``: the ideal observer's Δχ² of the
+    perturbation ``diff`` with every other parameter known."""
+    mask = np.asarray(mask, dtype=bool)
+    return float(np.sum(whiten(diff, sigma, w)[mask] ** 2))
+
+
+def refit_delta_chi2(diff, jacobian, sigma, mask, w: float = 0.0) -> float:
+    """Δχ² of ``diff`` ``(H, W)`` left after the weighted least-squares fit of the smooth
+    model's derivatives ``jacobian`` ``(P, H, W)`` (one image per parameter): the signal no
+    small change of the smooth model can absorb. Degenerate columns (a parameter the image
+    does not depend on) are handled by the minimum-norm solution."""
+    mask = np.asarray(mask, dtype=bool)
+    b = whiten(diff, sigma, w)[mask]
+    jac = np.asarray(jacobian, dtype=np.float64)
+    if jac.shape[0] == 0:
+        return float(np.sum(b**2))
+    a = np.stack([whiten(col, sigma, w)[mask] for col in jac], axis=1)
+    scale = np.linalg.norm(a, axis=0)
+    scale[scale == 0] = 1.0
+    coef, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
+    return float(np.sum((b - (a / scale) @ coef) ** 2))
+
+
+def stack_sums(values, n: int, set_id=None) -> np.ndarray:
+    """Δχ² of stacks of ``n`` independent images: the sum over each set's first ``n``
+    images (``set_id``: the set of each image; None: consecutive groups of ``n``). Sets
+    with fewer than ``n`` images are left out."""
+    v = np.asarray(values, dtype=np.float64)
+    ids = np.arange(v.size) // n if set_id is None else np.asarray(set_id)
+    out = [v[ids == s][:n].sum() for s in dict.fromkeys(ids.tolist()) if np.sum(ids == s) >= n]
+    return np.asarray(out, dtype=np.float64)

@@ -1,0 +1,92 @@
+"""The ideal observer's Δχ² (subslope.stats.signal) against images whose value is known
+in closed form, the linearised refit's limits, and correlated noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from subslope.physics.instrument import correlate_noise, noise_kernel_weight
+from subslope.stats.signal import delta_chi2, refit_delta_chi2, stack_sums, whiten
+
+N = 64
+
+
+def _grid():
+    y, x = np.mgrid[:N, :N] - (N - 1) / 2
+    return x, y
+
+
+def test_gaussian_blob_matches_its_closed_form():
+    """A Gaussian of amplitude A and width s on a pixel grid, σ constant: Σ (A/σ)² e^{−r²/s²}
+    is (A/σ)² π s² for s of a few pixels (the sum of a smooth Gaussian is its integral)."""
+    x, y = _grid()
+    amp, s, sigma = 0.3, 4.0, 0.05
+    blob = amp * np.exp(-(x**2 + y**2) / (2 * s**2))
+    mask = np.ones((N, N), bool)
+    expect = (amp / sigma) ** 2 * np.pi * s**2
+    assert delta_chi2(blob, np.full((N, N), sigma), mask) == pytest.approx(expect, rel=1e-9)
+
+
+def test_mask_and_pixel_sigma_weight_the_sum():
+    d = np.ones((N, N))
+    sigma = np.full((N, N), 2.0)
+    mask = np.zeros((N, N), bool)
+    mask[:10, :5] = True
+    assert delta_chi2(d, sigma, mask) == pytest.approx(50 / 4)
+
+
+def test_correlated_noise_is_whitened_exactly_in_the_interior():
+    """d = σ·K(u) with the instrument's own correlation filter: whitening returns u, so
+    Δχ² over an interior mask is Σ u² there."""
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(N, N))
+    rho = 0.4
+    sigma = np.full((N, N), 0.1)
+    d = sigma * correlate_noise(torch.as_tensor(u), rho).numpy()
+    mask = np.zeros((N, N), bool)
+    mask[8:-8, 8:-8] = True
+    w = noise_kernel_weight(rho)
+    # K⁻¹ has infinite support, so the border (no periodic wrap there) reaches the
+    # interior at (w/(1 + √(1 − 4w²)))^8 ~ 1e-6 relative
+    assert delta_chi2(d, sigma, mask, w) == pytest.approx(float(np.sum(u[mask] ** 2)), rel=1e-6)
+    # for a smooth perturbation the correlated noise is stronger than σ alone says, so
+    # leaving the correlation out overstates the signal by ((1 + 2w)²/(1 + 2w²))²
+    x, y = _grid()
+    blob = np.exp(-(x**2 + y**2) / 50.0)
+    smooth = sigma * correlate_noise(torch.as_tensor(blob), rho).numpy()
+    gain = ((1 + 2 * w) ** 2 / (1 + 2 * w * w)) ** 2
+    assert delta_chi2(smooth, sigma, mask) / delta_chi2(smooth, sigma, mask, w) == pytest.approx(
+        gain, rel=0.05
+    )
+
+
+def test_refit_absorbs_what_the_smooth_model_can_and_keeps_what_it_cannot():
+    x, y = _grid()
+    sigma = np.full((N, N), 0.1)
+    mask = x**2 + y**2 < 25**2
+    jac = np.stack([np.exp(-(x**2 + y**2) / 200), x / N, np.ones((N, N))])
+    inside = 0.3 * jac[0] - 2.0 * jac[1] + 0.01 * jac[2]
+    assert refit_delta_chi2(inside, jac, sigma, mask) == pytest.approx(0.0, abs=1e-12)
+    bump = np.exp(-((x - 7) ** 2 + (y + 3) ** 2) / 2.0)
+    fixed = delta_chi2(bump, sigma, mask)
+    refit = refit_delta_chi2(bump, jac, sigma, mask)
+    assert 0 < refit <= fixed
+    # a component orthogonal to every column is left whole
+    odd = np.where(mask, np.sign(x) * np.sign(y), 0.0) * (x != 0) * (y != 0)
+    assert refit_delta_chi2(odd, jac, sigma, mask) == pytest.approx(
+        delta_chi2(odd, sigma, mask), rel=1e-9
+    )
+    # degenerate (zero) columns change nothing
+    padded = np.concatenate([jac, np.zeros((2, N, N))])
+    assert refit_delta_chi2(bump, padded, sigma, mask) == pytest.approx(refit, rel=1e-9)
+
+
+def test_stack_sums_and_bad_input():
+    assert stack_sums([1, 2, 3, 4, 5], 2).tolist() == [3.0, 7.0]
+    assert stack_sums([1, 2, 3, 4], 2, set_id=[0, 1, 0, 1]).tolist() == [4.0, 6.0]
+    with pytest.raises(ValueError, match="sigma"):
+        whiten(np.ones((4, 4)), np.zeros((4, 4)))
+    with pytest.raises(ValueError, match="w must be"):
+        whiten(np.ones((4, 4)), np.ones((4, 4)), 0.6)

@@ -1,0 +1,21 @@
+"""Snakemake script of rules signal_budget and signal_budget_cdm: the Delta chi^2 of the
+subhalos of the first images of one shard."""
+
+import logging
+
+from subslope.logs import log_to_file
+from subslope.stages.signal_budget import signal_budget_shard
+
+log_to_file(snakemake.log[0])
+try:
+    signal_budget_shard(
+        snakemake.input.shard,
+        snakemake.output.csv,
+        snakemake.params.images,
+        mask_factor=snakemake.params.mask_factor,
+        scene=snakemake.wildcards.scene,
+        multiplier=snakemake.wildcards.get("multiplier"),
+    )
+except Exception:
+    logging.exception("signal_budget failed")
+    raise
