@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -51,3 +52,23 @@ def test_the_temporary_of_a_killed_writer_is_removed_by_the_next_write(tmp_path)
     assert out.read_text() == "complete"
     assert not os.path.exists(left)
     assert other_host.exists()  # another host's writer may still be running
+
+
+def test_stale_temporaries_anywhere_under_a_folder_go_at_the_start_of_a_run(tmp_path):
+    """A shard-sized temporary of a killed job is removed when the workflow starts, not
+    only when that shard is written again; a live writer's stays."""
+    from subslope.io.atomic import remove_stale_temporaries_under, temporary_path
+
+    deep = tmp_path / "results" / "simulate_shard" / "train"
+    code = (
+        "import sys; from subslope.io.atomic import temporary_path; "
+        "print(temporary_path(sys.argv[1]))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(deep / "shard_0.h5")], capture_output=True, text=True
+    )
+    dead = Path(out.stdout.strip())
+    assert dead.exists()
+    live = temporary_path(deep / "shard_1.h5")
+    assert remove_stale_temporaries_under(tmp_path / "results") == [dead]
+    assert not dead.exists() and live.exists()

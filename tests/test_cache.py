@@ -4,6 +4,7 @@ on a cache built from the tiny campaign's own shards."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -18,8 +19,12 @@ from subslope.io.shard_cache import (
     MANIFEST,
     cached_entry,
     cached_path,
+    identity_path,
     put_files_in_cache,
+    put_in_cache,
+    shard_identity,
     take_files_from_cache,
+    take_from_cache,
 )
 from subslope.plan import shard_job_config
 from subslope.stages.domain import LENS_LIGHT_FILES, lens_light_fit_key
@@ -96,6 +101,11 @@ def cache_campaign(tiny_run, tmp_path):
     os.link(results / "kept.h5", cached_path(cache, "validation", key))
     os.link(results / "kept.h5", cached_path(cache, "validation", "0" * 64))
     shutil.copyfile(shard, cached_path(cache, "validation", "1" * 64))
+    for name in (key, "0" * 64, "1" * 64):  # their identity records make them entries
+        ident = shard_identity(cached_path(cache, "validation", name))
+        identity_path(cache, "validation", name).write_text(json.dumps(ident))
+    # a stray file in the cache folder is not an entry, and prune never removes it
+    shutil.copyfile(shard, cached_path(cache, "validation", "stray"))
     fits = tiny_run / "fit_lens_light"
     put_files_in_cache(
         cache,
@@ -115,7 +125,7 @@ def test_du_tells_what_uses_each_entry(cache_campaign, capsys):
     assert not entries["0" * 64].used_by and not entries["1" * 64].used_by
     assert not entries["1" * 64].held
     (fit,) = [e for e in entries.values() if e.kind == "lens_light"]
-    assert fit.used_by == ["tiny"] and fit.held  # linked from the tiny run's fit_lens_light
+    assert fit.used_by == ["tiny"] and not fit.held  # entered as a copy of its own
     assert main(["cache", "du", "--config", str(cache_campaign["path"]), "--entries"]) == 0
     out = capsys.readouterr().out
     assert f"{cache_campaign['cache']}: 4 entries" in out
@@ -141,6 +151,7 @@ def test_prune_keeps_what_is_used_or_linked(cache_campaign, capsys):
     left = cache_usage(campaigns_in_use([cache_campaign["path"]]))[cache]
     assert sorted(e.kind for e in left) == ["lens_light", "shard"]
     assert all(e.used_by for e in left)
+    assert cached_path(cache, "validation", "stray").exists()
 
 
 def test_prune_of_a_config_without_a_cache(tmp_path, capsys):
@@ -157,3 +168,57 @@ def test_prune_of_a_config_without_a_cache(tmp_path, capsys):
     assert prune_cache(cache_usage(campaigns_in_use([path]))) == ([], [])
     assert main(["cache", "du", "--config", str(path)]) == 0
     assert "no campaign keeps a cache" in capsys.readouterr().out
+
+
+def test_a_cached_shard_is_a_file_of_its_own_and_must_be_the_shard_of_its_key(tiny_run, tmp_path):
+    """Overwriting a results/ shard (a restore "from a copy") cannot reach the cache, and a
+    cache file that is not the shard its key names is refused and removed."""
+    cache = tmp_path / "cache"
+    shard0 = tiny_run / "simulate_shard" / "train" / "shard_0.h5"
+    shard1 = tiny_run / "simulate_shard" / "train" / "shard_1.h5"
+    result = tmp_path / "results" / "shard_0.h5"
+    result.parent.mkdir()
+    shutil.copyfile(shard0, result)
+    put_in_cache(cache, "train", "k0", result)
+    assert os.stat(result).st_ino != os.stat(cached_path(cache, "train", "k0")).st_ino
+    with open(shard1, "rb") as src, open(result, "r+b") as dst:  # cp writes into the inode
+        dst.truncate(0)
+        shutil.copyfileobj(src, dst)
+    out = tmp_path / "taken.h5"
+    assert take_from_cache(cache, "train", "k0", out, shard=0)
+    assert shard_identity(out)["shard_index"] == 0
+    # the cache file itself replaced by another shard's bytes: not the shard of its key
+    shutil.copyfile(shard1, cached_path(cache, "train", "k0"))
+    assert not take_from_cache(cache, "train", "k0", tmp_path / "bad.h5", shard=0)
+    assert not cached_path(cache, "train", "k0").exists()
+    assert not identity_path(cache, "train", "k0").exists()
+    # asked for the wrong index (a key that names shard 1): refused as well
+    put_in_cache(cache, "train", "k1", shard0)
+    assert not take_from_cache(cache, "train", "k1", tmp_path / "bad.h5", shard=1)
+
+
+@pytest.mark.parametrize("folder", ["results", "results/cache", "."])
+def test_a_cache_folder_overlapping_results_is_refused(tmp_path, folder, monkeypatch, capsys):
+    from subslope.plan import cache_folder_problems
+
+    config = {"simulation": {"shard_cache": folder}, "systematics": {"shard_cache": None}}
+    (problem,) = cache_folder_problems(config, tmp_path)
+    assert "simulation.shard_cache" in problem and "overlaps results/" in problem
+    assert cache_folder_problems({"simulation": {"shard_cache": ".cache/x"}}, tmp_path) == []
+    (tmp_path / "results" / "analyze_hst").mkdir(parents=True)
+    kept = tmp_path / "results" / "analyze_hst" / "profiles.h5"
+    kept.write_bytes(b"a finished result")
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "base": str(Path(__file__).parents[1] / "config" / "tiny.yaml"),
+                "simulation": {"shard_cache": folder},
+                "systematics": {"variants": []},
+            }
+        )
+    )
+    monkeypatch.chdir(tmp_path)
+    assert main(["cache", "prune", "--config", str(path)]) == 1
+    assert "overlaps results/" in capsys.readouterr().err
+    assert kept.exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import re
+import shutil
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,9 @@ import yaml
 from subslope import config as cfg
 from subslope.cli import main as cli_main
 from subslope.simulation.scenes import PRESETS, scenes_from_config
+from tests.conftest import REPO_ROOT
+
+REPO_CONFIG = REPO_ROOT / "config" / "config.yaml"
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config" / "config.yaml"
@@ -462,3 +466,56 @@ def test_plan_problems_seen_before_any_job(tmp_path, data_dir, override, match):
     path.write_text(yaml.safe_dump(config))
     assert main(["validate-config", "-q", str(path)]) == 1
     assert not plan_problems(base)
+
+
+def test_a_prior_over_a_base_replaces_the_old_prior_whole(tmp_path):
+    """A layered file's prior is the prior it states: no bound of the base's survives."""
+    (tmp_path / "top.yaml").write_text(
+        f"base: {REPO_CONFIG}\n"
+        "scenes:\n"
+        "  train:\n"
+        "    main_lens:\n"
+        "      theta_e: {dist: normal, mean: 1.1, std: 0.3}\n"
+    )
+    base = cfg.load(REPO_CONFIG, env=False)["scenes"]["train"]["main_lens"]["theta_e"]
+    assert isinstance(base, dict) and "low" in base  # the base bounds it
+    top = cfg.load(tmp_path / "top.yaml", env=False)["scenes"]["train"]["main_lens"]["theta_e"]
+    assert top == {"dist": "normal", "mean": 1.1, "std": 0.3}
+    # a mapping without `dist` still merges key by key
+    merged = cfg.deep_merge({"a": {"x": 1, "y": 2}}, {"a": {"y": 3}})
+    assert merged == {"a": {"x": 1, "y": 3}}
+    assert cfg.deep_merge(
+        {"p": {"dist": "uniform", "low": 0, "high": 1}}, {"p": {"dist": "fixed", "value": 2}}
+    ) == {"p": {"dist": "fixed", "value": 2}}
+
+
+def test_a_psf_file_that_is_no_psf_library_is_refused_naming_key_and_file(tmp_path, data_dir):
+    from subslope.plan import plan_problems, plan_warnings
+
+    (tmp_path / "psf").mkdir()
+    (tmp_path / "psf" / "text.fits").write_text("root:x:0:0:root:/root:/bin/bash\n")
+    config = cfg.validate(
+        {
+            "data": {"mirror": str(data_dir), "resources_dir": str(tmp_path)},
+            "instrument": {"psf": {"file": "psf/text.fits"}},
+        }
+    )
+    (problem,) = [p for p in plan_problems(config) if "instrument.psf.file" in p]
+    assert "'psf/text.fits'" in problem and str(tmp_path / "psf" / "text.fits") in problem
+    assert "is not a PSF library" in problem
+    real = data_dir / "psf" / "emp_psf_f814w.fits"
+    if real.is_file():  # the real library, but a PSF it does not hold
+        shutil.copyfile(real, tmp_path / "psf" / "real.fits")
+        good = cfg.validate(
+            {
+                **config,
+                "instrument": {
+                    **config["instrument"],
+                    "psf": {**config["instrument"]["psf"], "file": "psf/real.fits"},
+                },
+            }
+        )
+        assert not [p for p in plan_problems(good) if "instrument.psf.file" in p]
+    # a resources folder outside the project is allowed, with a warning that says so
+    (warning,) = [w for w in plan_warnings(config, root=REPO_ROOT) if "resources_dir" in w]
+    assert "outside the project folder" in warning and "results" in warning

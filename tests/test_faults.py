@@ -609,6 +609,47 @@ def test_a_failed_rerun_keeps_the_previous_results(finished_campaign, data_dir):
 
 
 @pytest.mark.slow
+def test_a_job_that_fails_after_a_config_change_runs_again(finished_campaign, data_dir):
+    """Training fails after training.max_epochs changed: Snakemake puts the previous
+    model back, and the next plain run trains again (it would otherwise take the old
+    model for one of the new config); the model it writes is the new config's."""
+    root = finished_campaign
+    results = root / "results"
+    old_model = (results / "train_estimator" / "model.pt").read_bytes()
+    overlay = root / "config" / "more_epochs.yaml"
+    overlay.write_text("training:\n  max_epochs: 3\n  early_stop_patience: 3\n")
+    shard = results / "simulate_shard" / "train" / "shard_0.h5"
+    good, times = shard.read_bytes(), (shard.stat().st_atime, shard.stat().st_mtime)
+    _flip_chunk(shard, "images", 1)
+    os.utime(shard, times)  # a silent corruption: the job fails, its inputs look unchanged
+    argv = ("--cores", "1", *TINY, str(overlay), "--until", "train_estimator")
+    proc = run_snakemake(root, *argv, mirror=data_dir)
+    assert proc.returncode != 0
+    assert (
+        "Restored previous version of results/train_estimator/model.pt" in proc.stdout + proc.stderr
+    )
+    assert (results / "train_estimator" / "model.pt").read_bytes() == old_model
+    shard.write_bytes(good)
+    os.utime(shard, times)
+    dry = run_snakemake(
+        root, "-n", *TINY, str(overlay), "--until", "train_estimator", mirror=data_dir
+    )
+    assert "train_estimator" in dry.stdout, dry.stdout[-2000:]
+    proc = run_snakemake(root, *argv, mirror=data_dir)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    import torch
+
+    model = torch.load(results / "train_estimator" / "model.pt", weights_only=True)
+    assert model["config"]["max_epochs"] == 3
+    assert (
+        "Nothing to be done"
+        in run_snakemake(
+            root, "-n", *TINY, str(overlay), "--until", "train_estimator", mirror=data_dir
+        ).stdout
+    )
+
+
+@pytest.mark.slow
 def test_results_get_the_users_umask(tiny_run):
     umask = os.umask(0)
     os.umask(umask)

@@ -155,3 +155,31 @@ def test_sheet_channel_with_fewer_stacks_than_regressors_has_no_partial_row():
     label = np.array([1.2, 1.9, 2.5, 2.8])
     rows = sheet_channel(label, {"subhalos": -1 / label, "los": -0.1 / label**2}, label)
     assert [r["given"] for r in rows] == [""] * 4
+
+
+@pytest.mark.slow
+def test_a_shard_made_on_cuda_re_renders_on_this_machine(tiny_run, tmp_path):
+    """The re-renders take dtype and knobs from the shard but render on a device this
+    job has: a shard whose settings say CUDA re-renders on a CPU-only node, to the same
+    images as with its settings saying CPU."""
+    import json
+    import shutil
+
+    import h5py
+
+    from subslope.io.shards import open_shard
+    from subslope.simulation.rerender import stored_settings, subhalo_free_images
+
+    if torch.cuda.is_available():
+        pytest.skip("needs a machine without CUDA")
+    shard = tmp_path / "cuda_made.h5"
+    shutil.copyfile(tiny_run / "simulate_shard" / "nfw" / "a1" / "shard_0.h5", shard)
+    with h5py.File(shard, "r+") as fh:
+        settings = json.loads(fh.attrs["render_settings"])
+        settings["device"] = "cuda:0"
+        fh.attrs["render_settings"] = json.dumps(settings)
+    with open_shard(shard) as opened:
+        assert stored_settings(opened.attrs).device is None  # this job's device
+    images = subhalo_free_images(shard, [0, 1])
+    same = subhalo_free_images(tiny_run / "simulate_shard" / "nfw" / "a1" / "shard_0.h5", [0, 1])
+    assert np.array_equal(images, same) and np.isfinite(images).all()

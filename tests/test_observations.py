@@ -131,6 +131,8 @@ def _folder(tmp_path, data_dir, catalog_text):
         ),
         ("SDSSJ0946+1006_npix100.npy,X,0.2,0.6,-1\n", "theta_E_arcsec must be > 0"),
         (",X,0.2,0.6,1\n", "line 2: empty 'file'"),
+        ("/etc/passwd,X,0.2,0.6,1\n", r"line 2 \(X\): file '/etc/passwd' must be a path inside"),
+        ("../hst/copy_npix100.npy,X,0.2,0.6,1\n", r"file '\.\./hst/copy_npix100.npy' must be"),
         ("", "no rows"),
     ],
 )

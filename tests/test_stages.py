@@ -468,3 +468,52 @@ def test_leave_one_out_names_the_lens_that_carries_the_stack():
     assert min(shifts, key=shifts.get) == "L5" and shifts["L5"] < -0.1
     assert all(abs(shifts[f"L{k}"]) < abs(shifts["L5"]) for k in range(5))
     assert all(r["n_images"] == 5 and r["lower"] <= r["mle"] <= r["upper"] for r in rows)
+
+
+def test_cli_analyze_hst_passes_its_config_on(monkeypatch, tmp_path, capsys):
+    """A light-subtracted estimator fits the cutouts' lens light with the config's PSF and
+    detector: ``subslope analyze-hst --config`` hands that config to the stage."""
+    import pandas as pd
+
+    import subslope.stages.hst as hst_stage
+    from subslope.cli import main
+    from tests.conftest import REPO_ROOT
+
+    seen = {}
+
+    def fake(*args, **kwargs):
+        seen.update(kwargs)
+        return pd.DataFrame({"system": ["combined"]})
+
+    monkeypatch.setattr(hst_stage, "analyze_hst", fake)
+    argv = ["analyze-hst", "--config", str(REPO_ROOT / "config" / "tiny.yaml")]
+    argv += ["--model", "m.pt", "--thresholds", "t.json", "--out", str(tmp_path)]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert seen["config"]["run_name"] == "tiny"
+    assert seen["loo_csv"] == tmp_path / "leave_one_out.csv"
+
+
+def test_a_flipped_byte_in_a_profiles_file_is_an_error_naming_file_dataset_and_row(tmp_path):
+    """Profiles files carry Fletcher-32 checksums: a corrupt log_ratio never reaches the
+    calibration as a different number, and a truncated file is named."""
+    from subslope.io.ratio_profiles import ProfilesError
+
+    path = tmp_path / "p.h5"
+    g = np.linspace(1.1, 2.9, 91)
+    lr = np.random.default_rng(0).normal(size=(40, g.size))
+    write_profiles(path, log_ratio=lr, gammas=g)
+    np.testing.assert_array_equal(read_profiles(path)["log_ratio"], lr)
+    import h5py
+
+    with h5py.File(path, "r") as fh:
+        offset = fh["log_ratio"].id.get_offset() or fh["log_ratio"].id.get_chunk_info(0).byte_offset
+    raw = bytearray(path.read_bytes())
+    raw[offset + 100] ^= 0xFF
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(ProfilesError, match=rf"{bad}: log_ratio row \d+ cannot be read"):
+        read_profiles(bad)
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(ProfilesError, match=f"{cut}"):
+        read_profiles(cut)

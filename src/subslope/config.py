@@ -469,11 +469,22 @@ BASE_KEY = "base"
 RUN_ONLY_RENDER_KEYS = ("device", "compile_cache")
 
 
+#: The key that marks a mapping as a prior (``{dist: ..., ...}``): such a mapping replaces
+#: the value beneath it whole, so that no bound of an older prior survives in a new one.
+PRIOR_KEY = "dist"
+
+
 def deep_merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
-    """``base`` with ``top`` merged in: mappings key by key, any other value replaced."""
+    """``base`` with ``top`` merged in: mappings key by key, except a prior (a mapping
+    with :data:`PRIOR_KEY`), which replaces whatever it lands on whole; any other value
+    replaced."""
     out = copy.deepcopy(dict(base))
     for key, value in top.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+        if (
+            isinstance(value, Mapping)
+            and PRIOR_KEY not in value
+            and isinstance(out.get(key), Mapping)
+        ):
             out[key] = deep_merge(out[key], value)
         else:
             out[key] = copy.deepcopy(value)

@@ -7,6 +7,7 @@ seeds derived for the later stages, and how many cluster jobs a dry run's jobs m
 from __future__ import annotations
 
 import hashlib
+import os
 import re
 from collections import Counter
 from collections.abc import Mapping
@@ -21,11 +22,13 @@ from subslope.simulation.resolve import resolved_scene, scene_multipliers
 
 __all__ = [
     "SHARD_DIR",
+    "cache_folder_problems",
     "RUN_ONLY_RENDER_KEYS",
     "count_cluster_jobs",
     "derived_seed",
     "host_rules",
     "plan_problems",
+    "plan_warnings",
     "slurm_gpu_problems",
     "multiplier_label",
     "shard_job_config",
@@ -164,6 +167,7 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
             f"config key instrument.noise_correlation = {rho}: a range [low, high] needs "
             "low <= high"
         )
+    problems += cache_folder_problems(config)
     problems += _cosmos_folder_problems(config)
     problems += _psf_problems(config)
     problems += _hst_name_problems(config)
@@ -189,15 +193,59 @@ def _not_registered(config, names, prefix: str, kind: str) -> tuple[list[str], s
 
 
 def _psf_problems(config: Mapping[str, Any]) -> list[str]:
+    """The PSF file must be registered data or a file under the resources folder, and a
+    file that is there must hold the PSF library the config asks for (read as the shard
+    jobs read it), so that a wrong file stops the run before any job, naming key and
+    file."""
     psf = config["instrument"]["psf"]
     if psf["source"] != "empirical":
         return []
     missing, known, root = _not_registered(config, [psf["file"]], "psf/", "file")
-    return [
-        f"config key instrument.psf.file = {name!r}: neither a registered data file "
-        f"({known}) nor a file under data.resources_dir = {root}"
-        for name in missing
-    ]
+    if missing:
+        return [
+            f"config key instrument.psf.file = {name!r}: neither a registered data file "
+            f"({known}) nor a file under data.resources_dir = {root}"
+            for name in missing
+        ]
+    path = Path(root) / psf["file"]
+    if not path.is_file():
+        return []  # registered and not yet fetched: fetch_data checks its checksum
+    from subslope.physics.instrument import load_empirical_psf
+
+    try:
+        which = "mean" if psf["index"] is None else int(psf["index"])
+        load_empirical_psf(path, which, supersampling=int(psf["supersampling"]))
+    except Exception as exc:  # astropy, numpy and our own checks raise alike
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return [
+            f"config key instrument.psf.file = {psf['file']!r}: {path} is not a PSF library "
+            f"of odd square FITS images with PSF {psf['index']} ({reason})"
+        ]
+    return []
+
+
+#: Path keys of a config whose folder may lie outside the project (variants do that).
+OUTSIDE_KEYS = ("data.resources_dir", "simulation.shard_cache", "simulation.render.compile_cache")
+
+
+def plan_warnings(config: Mapping[str, Any], root: str | os.PathLike[str] = ".") -> list[str]:
+    """Legitimate but surprising choices, to log before the first job: a path key of
+    :data:`OUTSIDE_KEYS` outside the project folder ``root``."""
+    base = Path(root).resolve()
+    out = []
+    for key in OUTSIDE_KEYS:
+        value: Any = config
+        for part in key.split("."):
+            value = value.get(part) if isinstance(value, Mapping) else None
+        if not value:
+            continue
+        path = (base / str(value)).resolve()
+        if path != base and base not in path.parents:
+            out.append(
+                f"config key {key} = {value!r} lies outside the project folder {base}; "
+                f"the campaign still writes its results to {base / 'results'}"
+            )
+    return out
 
 
 def _cosmos_folder_problems(config: Mapping[str, Any]) -> list[str]:
@@ -320,3 +368,24 @@ def count_cluster_jobs(dry_run: str, local: set[str]) -> Counter[str]:
                     jobs[rule] += 1
     close()
     return jobs
+
+
+def cache_folder_problems(config: Mapping, root: str | os.PathLike[str] = ".") -> list[str]:
+    """The cache folders of ``config`` (``simulation.shard_cache``,
+    ``systematics.shard_cache``) that overlap the campaign's ``results/`` folder (are it,
+    lie inside it or contain it), each naming the key: a cache beside the results would
+    let ``subslope cache prune`` take a result for a cache entry."""
+    base = Path(root).resolve()
+    results = (base / "results").resolve()
+    problems = []
+    for key in ("simulation", "systematics"):
+        folder = (config.get(key) or {}).get("shard_cache")
+        if not folder:
+            continue
+        path = (base / folder).resolve()
+        if path == results or results in path.parents or path in results.parents:
+            problems.append(
+                f"config key {key}.shard_cache = {folder!r} overlaps results/ ({results}); "
+                "allowed: a folder outside results/, e.g. .cache/shard_cache"
+            )
+    return problems

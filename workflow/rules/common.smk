@@ -7,6 +7,8 @@ from snakemake.logging import logger
 from snakemake.exceptions import WorkflowError
 
 import subslope.devices
+import subslope.logs
+import subslope.io.atomic
 import subslope.plan
 import subslope.config
 import subslope.io.resources
@@ -25,6 +27,17 @@ subslope.config.apply_env_overrides(config)  # SUBSLOPE_DATA_MIRROR -> data.mirr
 _PROBLEMS = subslope.plan.plan_problems(config)
 if _PROBLEMS:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(_PROBLEMS))
+for _warning in subslope.plan.plan_warnings(config):
+    logger.warning(f"warning: {_warning}")
+# Outputs of jobs that started and did not finish (killed, or failed and restored by
+# update()) are made older than any input, so that their jobs run again
+# (subslope.logs). Only the main process: a cluster job's own Snakemake leaves the
+# records of the jobs running beside it alone.
+if workflow.is_main_process:
+    for _stale in subslope.logs.mark_unfinished_outputs():
+        logger.warning(f"{_stale}: its last job did not finish; that job runs again")
+    for _tmp in subslope.io.atomic.remove_stale_temporaries_under("results"):
+        logger.info(f"removed {_tmp}, left by a killed job")
 
 
 # Before the first job, once the executor is known: a device this machine cannot serve

@@ -5,7 +5,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.data import fetch_files
 
-log_to_file(snakemake.log[0])
+log_to_file(snakemake.log[0], outputs=snakemake.output)
 try:
     fetch_files(
         snakemake.output,

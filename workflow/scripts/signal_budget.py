@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.signal_budget import signal_budget_shard
 
-log_to_file(snakemake.log[0])
+log_to_file(snakemake.log[0], outputs=snakemake.output)
 try:
     signal_budget_shard(
         snakemake.input.shard,

@@ -12,7 +12,7 @@ from subslope.logs import log_to_file
 from subslope.stages.simulate import runnable_config
 from subslope.stages.train import run_training
 
-log_to_file(snakemake.log[0])
+log_to_file(snakemake.log[0], outputs=snakemake.output)
 try:
     pick_device(
         snakemake.params.device, key="training.device"

@@ -22,7 +22,7 @@ from typing import Any
 
 from subslope import config as _config
 from subslope.io.shard_cache import MANIFEST
-from subslope.plan import shard_job_config, shard_jobs
+from subslope.plan import cache_folder_problems, shard_job_config, shard_jobs
 from subslope.stages.domain import lens_light_fit_key
 from subslope.stages.simulate import shard_cache_key
 
@@ -77,9 +77,9 @@ def cache_entries(folder: str | os.PathLike[str]) -> list[CacheEntry]:
         if sub.name.startswith("_"):
             kind = sub.name[1:]
             items = sorted(p for p in sub.iterdir() if p.is_dir())
-        else:
+        else:  # a shard is an entry only with its identity record: nothing else is removed
             kind = "shard"
-            items = sorted(sub.glob("*.h5"))
+            items = sorted(p for p in sub.glob("*.h5") if p.with_suffix(".json").is_file())
         for item in items:
             stats = [p.stat() for p in _files(item) if p.name != MANIFEST]
             entries.append(
@@ -141,6 +141,9 @@ def referenced_keys(campaigns: Iterable[Campaign]) -> dict[tuple[str, str], set[
 def cache_usage(campaigns: Sequence[Campaign]) -> dict[Path, list[CacheEntry]]:
     """The entries of every cache folder the ``campaigns`` use, each with the run names
     that reference it (:func:`referenced_keys`)."""
+    problems = [p for c in campaigns for p in cache_folder_problems(c.config)]
+    if problems:
+        raise _config.ConfigError("\n".join(problems))
     used = referenced_keys(campaigns)
     folders = sorted(
         {
@@ -177,6 +180,7 @@ def prune_cache(
                     shutil.rmtree(entry.path)
                 else:
                     entry.path.unlink(missing_ok=True)
+                    entry.path.with_suffix(".json").unlink(missing_ok=True)
             removed.append(entry)
     return removed, kept
 

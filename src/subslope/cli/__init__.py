@@ -238,6 +238,8 @@ def _analyze_hst(args: argparse.Namespace) -> int:
             device=config["inference"]["device"],
             nfw_scene=config["cdm"]["nfw_scene"],
             tnfw_scene=config["cdm"]["tnfw_scene"],
+            config=config,
+            loo_csv=out / "leave_one_out.csv",
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "remove_stale_temporaries_under",
     "DiskFullError",
     "ResultFileError",
     "read_json",
@@ -118,6 +119,20 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
         if pid.isdigit() and not _alive(int(pid)):
             tmp.unlink(missing_ok=True)
             removed.append(tmp)
+    return removed
+
+
+def remove_stale_temporaries_under(folder: str | os.PathLike[str]) -> list[Path]:
+    """:func:`remove_stale_temporaries` for every temporary anywhere under ``folder``
+    (the workflow calls it on ``results/`` when it starts: a shard-sized leftover of a
+    killed job goes at the next run, not when that shard is written again)."""
+    removed = []
+    root = Path(folder)
+    for tmp in root.rglob(".*.tmp") if root.is_dir() else []:
+        name = tmp.name[1:-4]  # <name>.<host>.<pid>.<random>
+        parts = name.rsplit(".", 3)
+        if len(parts) == 4:
+            removed += remove_stale_temporaries(tmp.with_name(parts[0]))
     return removed
 
 

@@ -149,6 +149,11 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
         name = (row["system"] or "").strip()
         if not file or not name:
             raise ObservationError(f"{where}: empty 'file' or 'system'")
+        if Path(file).is_absolute() or ".." in Path(file).parts or "\\" in file:
+            raise ObservationError(
+                f"{where} ({name}): file {file!r} must be a path inside the catalogue's "
+                "folder (relative, without '..')"
+            )
         if file in seen_files:
             raise ObservationError(
                 f"{where}: duplicate file {file!r} (also on line {seen_files[file]})"

@@ -4,7 +4,9 @@ One HDF5 file per evaluated shard holds ``log_ratio (B, G)`` (float64), ``gammas
 ``gamma_true (B,)`` (NaN for CDM scenes, which have no label), ``set_index (B,)``
 (images of one set share γ), ``c_multiplier (B,)`` (NaN for EPL scenes), ``theta_e``,
 ``lens_x``, ``lens_y`` (the mask geometry used) and attributes naming the scene, shard,
-estimator and run.
+estimator and run. Every dataset carries a Fletcher-32 checksum per chunk, as the shards
+do: a flipped byte or a truncated file is a :class:`ProfilesError` naming the file, the
+dataset and the first row that cannot be read, never a silently different number.
 """
 
 from __future__ import annotations
@@ -20,7 +22,35 @@ import numpy as np
 
 from subslope.io.atomic import atomic_write
 
-__all__ = ["PROFILE_FIELDS", "write_profiles", "read_profiles"]
+__all__ = ["PROFILE_FIELDS", "ProfilesError", "write_profiles", "read_profiles"]
+
+
+class ProfilesError(ValueError):
+    """A profiles file is missing, truncated or corrupt (the message names it)."""
+
+
+def _recovery(path) -> str:
+    return f"delete {path} and run snakemake again to evaluate it anew"
+
+
+def _rows(path, fh: h5py.File, name: str) -> np.ndarray:
+    """Dataset ``name`` of an open profiles file, every chunk checked; a bad chunk raises
+    :class:`ProfilesError` naming file, dataset and the first row that cannot be read."""
+    if name not in fh:
+        raise ProfilesError(f"{path} lacks dataset {name}: not a profiles file; {_recovery(path)}")
+    data = fh[name]
+    try:
+        return data[...]
+    except OSError as exc:
+        for k in range(data.shape[0] if data.shape else 0):
+            try:
+                data[k]
+            except OSError:
+                raise ProfilesError(
+                    f"{path}: {name} row {k} cannot be read ({exc}): the file is corrupt; "
+                    f"{_recovery(path)}"
+                ) from None
+        raise ProfilesError(f"{path}: {name} cannot be read ({exc}); {_recovery(path)}") from None
 
 
 #: Datasets of a profiles file (besides ``gammas``).
@@ -74,9 +104,8 @@ def write_profiles(
         "lens_y": col(lens_y, np.float64, np.nan),
     }
     with atomic_write(path) as tmp, h5py.File(tmp, "w") as fh:
-        fh.create_dataset("gammas", data=g)
-        for k, v in data.items():
-            fh.create_dataset(k, data=v)
+        for k, v in {"gammas": g, **data}.items():
+            fh.create_dataset(k, data=v, fletcher32=v.size > 0, chunks=True if v.size else None)
         for k, v in (attrs or {}).items():
             fh.attrs[k] = (
                 v if isinstance(v, (int, float, str, np.number)) else json.dumps(v, default=str)
@@ -95,14 +124,22 @@ def read_profiles(paths) -> dict[str, np.ndarray]:
     gammas = None
     offset = 0
     for p in paths:
-        with h5py.File(p, "r") as fh:
-            g = fh["gammas"][...]
+        if not Path(p).is_file():
+            raise ProfilesError(f"profiles file not found: {p}")
+        try:
+            fh = h5py.File(p, "r")
+        except OSError as exc:
+            raise ProfilesError(
+                f"{p} is not a readable HDF5 file (truncated or corrupt: {exc}); {_recovery(p)}"
+            ) from None
+        with fh:
+            g = _rows(p, fh, "gammas")
             if gammas is None:
                 gammas = g
             elif g.shape != gammas.shape or not np.allclose(g, gammas):
                 raise ValueError(f"{p}: gamma grid differs from the first file's")
             for k in PROFILE_FIELDS:
-                parts[k].append(fh[k][...])
+                parts[k].append(_rows(p, fh, k))
         _, inv = np.unique(parts["set_index"][-1], return_inverse=True)
         set_id.append(inv.astype(np.int64) + offset)
         offset += int(inv.max()) + 1 if inv.size else 0

@@ -7,17 +7,18 @@ shard once, as ``<folder>/<scene>/<key>.h5``; the key (computed by
 :func:`subslope.stages.simulate.shard_cache_key`) is the SHA-256 of everything the images
 depend on, so a key that is present is the shard the job would write.
 
-A cached file is used only after :func:`subslope.io.shards.verify_shard` has read every
-chunk against its checksum; a bad one is removed and the shard simulated again. A file
-enters the cache as a hard link of the campaign's own result where the two folders
-share a file system (no second copy on disk; the writers never write into an existing
-file, so a link cannot be changed through the other name), else as a copy. It leaves
-the cache as a copy of its own (a reflink, sharing the blocks, on file systems that
-offer one: btrfs, XFS), never as a second name of the file another campaign holds:
-Snakemake touches every output after its job, and through a shared inode a variant's
-run would make the shards of the campaign it shares them with newer than that
-campaign's whitening, model and profiles, which its next run would then redo. Both go
-through a temporary name beside the target.
+A cached shard is used only when it is the shard of its key: its identity (scene, shard
+index, multiplier, config hash and seed, :func:`shard_identity`), recorded beside it as
+``<key>.json`` when it entered the cache, matches both the shard's own attributes and
+the request, and :func:`subslope.io.shards.verify_shard` has read every chunk against
+its checksum; anything else is removed and the shard simulated again. A file enters and
+leaves the cache as a copy of its own (a reflink, sharing the blocks, on file systems
+that offer one: btrfs, XFS), never as a second name of a file a user may write through
+(``cp other.h5 results/.../shard_0.h5`` writes into the inode a hard link would share)
+or that Snakemake touches after a job. Both go through a temporary name beside the
+target, and the identity record is written last, so an interrupted entry is never
+taken. :func:`subslope.plan.cache_folder_problems` refuses a cache folder that overlaps
+``results/``.
 
 Results other than shards (the HST lens-light fits) are kept the same way, as a folder
 ``<folder>/_<kind>/<key>/`` of files and a ``manifest.json`` of their SHA-256 written
@@ -42,6 +43,8 @@ from subslope.io.shards import ShardError, file_sha256, verify_shard
 __all__ = [
     "CODE_PARTS",
     "MANIFEST",
+    "identity_path",
+    "shard_identity",
     "code_digest",
     "cached_path",
     "cached_entry",
@@ -124,19 +127,73 @@ def clone_or_copy(source: str | os.PathLike[str], target: str | os.PathLike[str]
     return target
 
 
+def identity_path(folder: str | os.PathLike[str], scene: str, key: str) -> Path:
+    """The identity record of the cached shard of ``key`` (``<key>.json`` beside it)."""
+    return Path(folder) / scene / f"{key}.json"
+
+
+#: The shard attributes that say which shard a file is.
+IDENTITY_ATTRS = ("scene", "shard_index", "multiplier", "config_hash", "seed_spawn_key")
+
+
+def shard_identity(path: str | os.PathLike[str]) -> dict:
+    """Which shard the file at ``path`` is: its :data:`IDENTITY_ATTRS`, as JSON values."""
+    from subslope.io.shards import open_shard
+
+    with open_shard(path) as shard:
+        attrs = shard.attrs
+        ident = {k: attrs.get(k) for k in IDENTITY_ATTRS}
+    return json.loads(
+        json.dumps(ident, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v))
+    )
+
+
+def _identity_problem(path: Path, record: Path, request: Mapping) -> str | None:
+    """Why the cached shard ``path`` is not the one ``request`` asks for, or None."""
+    if not record.is_file():
+        return f"{path} has no identity record {record.name}"
+    try:
+        recorded = json.loads(record.read_text(encoding="utf-8"))
+        stored = shard_identity(path)
+    except (OSError, ValueError, ShardError) as exc:
+        return f"{path}: {exc}"
+    if stored != recorded:
+        return f"{path} is not the shard its identity record names ({stored} != {recorded})"
+    for name, want in request.items():
+        have = stored.get(name)
+        if want is not None and (have is None or float(have) != float(want)):
+            return f"{path} holds {name} = {have}, the key asks for {want}"
+    return None
+
+
 def take_from_cache(
-    folder: str | os.PathLike[str], scene: str, key: str, out_path: str | os.PathLike[str]
+    folder: str | os.PathLike[str],
+    scene: str,
+    key: str,
+    out_path: str | os.PathLike[str],
+    *,
+    shard: int | None = None,
+    multiplier: float | None = None,
 ) -> bool:
     """Put the cached shard of ``key`` at ``out_path`` and return True, or return False
-    when the cache has none (or had a corrupt one, which is then removed)."""
+    when the cache has none, or had one that is corrupt or not the shard of the key
+    (scene, ``shard`` index and ``multiplier`` against its attributes and its identity
+    record), which is then removed."""
     path = cached_path(folder, scene, key)
+    record = identity_path(folder, scene, key)
     if not path.exists():
         return False
     try:
         verify_shard(path)
+        problem = _identity_problem(path, record, {"shard_index": shard, "multiplier": multiplier})
+        if problem is None and shard_identity(path).get("scene") != scene:
+            problem = f"{path} is a shard of another scene"
     except ShardError as exc:
-        log.warning("removing a corrupt cached shard: %s", exc)
+        problem = str(exc)
+    if problem is not None:
+        log.warning("removing a cached shard that cannot be used: %s", problem)
         path.unlink(missing_ok=True)
+        record.unlink(missing_ok=True)
         return False
     clone_or_copy(path, out_path)
     log.info("shard taken from the cache %s", path)
@@ -146,8 +203,10 @@ def take_from_cache(
 def put_in_cache(
     folder: str | os.PathLike[str], scene: str, key: str, shard_path: str | os.PathLike[str]
 ) -> Path:
-    """Enter the finished shard at ``shard_path`` into the cache under ``key``."""
-    path = link_or_copy(shard_path, cached_path(folder, scene, key))
+    """Enter a copy of the finished shard at ``shard_path`` into the cache under ``key``,
+    then its identity record."""
+    path = clone_or_copy(shard_path, cached_path(folder, scene, key))
+    write_text(identity_path(folder, scene, key), json.dumps(shard_identity(path), indent=1) + "\n")
     log.info("shard put in the cache %s", path)
     return path
 
@@ -197,7 +256,7 @@ def put_files_in_cache(
     the manifest is written last, so an interrupted entry is never taken."""
     entry = cached_entry(folder, kind, key)
     for name, source in outputs.items():
-        link_or_copy(source, entry / name)
+        clone_or_copy(source, entry / name)
     listed = {name: file_sha256(entry / name) for name in outputs}
     write_text(entry / MANIFEST, json.dumps(listed, indent=1, sort_keys=True) + "\n")
     log.info("%s put in the cache %s", kind, entry)

@@ -6,6 +6,7 @@ their halos removed (null tests)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Any
 
@@ -29,7 +30,21 @@ __all__ = [
     "subhalo_free_images",
     "sheet_kappas",
     "stored_populations",
+    "stored_settings",
 ]
+
+
+def stored_settings(attrs) -> Any:
+    """The render settings a shard was made with (dtype, batching, every knob), on the
+    device it was made on where this machine has it, else on this job's device (CUDA if
+    present, else the CPU): a shard made on a GPU re-renders on a CPU node."""
+    import torch
+
+    settings = _settings_from_json(attrs["render_settings"])
+    stored = str(settings.device or "")
+    if stored.startswith("cuda") and not torch.cuda.is_available():
+        settings = dataclasses.replace(settings, device=None)
+    return settings
 
 
 def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) -> dict[str, Any]:
@@ -41,7 +56,7 @@ def stored_inputs(shard: _shards.Shard, indices, *, cosmos=None, settings=None) 
     (shards written before the sheet centre was a choice: the origin).
     """
     a = shard.attrs
-    settings = settings or _settings_from_json(a["render_settings"])
+    settings = settings or stored_settings(a)
     idx = np.atleast_1d(np.arange(len(shard))[indices])
     macro = {k: v[idx] for k, v in shard.params.items() if k != "noise_seed"}
     cfg = a["config"]
@@ -138,7 +153,7 @@ def rerender(
         n = len(shard)
         if not 0 <= int(i) < n:
             raise IndexError(f"image index {i} out of range for {shard_path} with {n} images")
-        settings = _settings_from_json(shard.attrs["render_settings"])
+        settings = stored_settings(shard.attrs)
         bs = 1 if alone else settings.batch_images
         lo = int(i) // bs * bs
         inp = stored_inputs(shard, np.arange(lo, min(lo + bs, n)), cosmos=cosmos, settings=settings)

@@ -90,9 +90,7 @@ def analyze_hst(
     table = _with_domain_flags(pd.DataFrame(rows), domain_csv)
     write_text(out_csv, table.to_csv(index=False))
     if loo_csv is not None:
-        tau_l, n_l = threshold_for(thr, max(len(idx) - 1, 1))
-        loo = leave_one_out([names[k] for k in idx], prof[idx], g, tau_l, n_l)
-        write_text(loo_csv, pd.DataFrame(loo).to_csv(index=False))
+        _write_leave_one_out(loo_csv, [names[k] for k in idx], prof[idx], g, thr)
     _write_h5(out_h5, names, prof, g, geometry, combined, combine, run_name, model_path)
     source = f"estimator {meta.get('config_hash', '')}"
     shown = {s: prof[names.index(s)] for s in (show or names)}
@@ -188,6 +186,13 @@ def _lenses(hst_folder, pixel_scale: float, lens_centre: Mapping[str, Any] | Non
         ly,
         np.stack([o.image for o in obs]).astype(np.float32),
     )
+
+
+def _write_leave_one_out(path, systems, profiles, g, thr) -> None:
+    import pandas as pd
+
+    tau, n = threshold_for(thr, max(len(systems) - 1, 1))
+    write_text(path, pd.DataFrame(leave_one_out(systems, profiles, g, tau, n)).to_csv(index=False))
 
 
 def leave_one_out(systems: Sequence[str], profiles, g, tau: float, threshold_n: int) -> list[dict]:
@@ -296,7 +301,8 @@ def _write_h5(path, names, prof, g, geometry, combined, combine, run_name: str, 
     }
     with atomic_write(Path(path)) as tmp, h5py.File(tmp, "w") as fh:
         for key, value in arrays.items():
-            fh.create_dataset(key, data=value)
+            checked = value.size > 0 and value.dtype.kind != "S"  # checksums on every number
+            fh.create_dataset(key, data=value, fletcher32=checked, chunks=True if checked else None)
         fh.attrs["run_name"] = run_name
         fh.attrs["model"] = os.fspath(model_path)
 

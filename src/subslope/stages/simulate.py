@@ -122,7 +122,7 @@ def simulate_shard_job(
     torch's CPU threads while simulating."""
     cache = run["simulation"].get("shard_cache")
     key = shard_cache_key(job, scene, shard, multiplier) if cache else ""
-    if cache and take_from_cache(cache, scene, key, out_path):
+    if cache and take_from_cache(cache, scene, key, out_path, shard=shard, multiplier=multiplier):
         return Path(out_path)
     config = runnable_config(job, run)
     if threads is not None:
