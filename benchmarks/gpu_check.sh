@@ -3,8 +3,10 @@
 #   1. the `gpu`-marked tests (pytest -m gpu);
 #   2. render throughput of the batched renderer (batching 'auto', batch_images = the
 #      batch) at the mean training scene (N_sub = 1500 + LoS) for batch sizes 64-1024,
-#      and one estimator training step (ResNet-50, batch 1000, fp32 and AMP)
-#      (benchmarks/gpu_throughput.py);
+#      float32, with each batch's error against the CPU float64 reference and its peak
+#      GPU memory; ResNet-50 training steps at batch 1000 in fp32, bf16, bf16 +
+#      channels_last and bf16 + channels_last + torch.compile; the paper-scale GPU-hours
+#      at the fastest rate (benchmarks/gpu_throughput.py);
 #   3. training images/s from shards and from the live stream (training.data: stream),
 #      rendering on the GPU in the training process and in 2 spawned workers
 #      (benchmarks/stream_throughput.py);
@@ -34,11 +36,11 @@ export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv || true
   "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
   echo "== gpu tests"
-  timeout 240 "$py" -m pytest -q -m gpu -p no:cacheprovider tests 2>&1 | tee "$out/gpu_tests.log" | tail -5
+  timeout 150 "$py" -m pytest -q -m gpu -p no:cacheprovider tests 2>&1 | tee "$out/gpu_tests.log" | tail -5
   echo "== throughput"
-  timeout 200 "$py" benchmarks/gpu_throughput.py --device cuda --out "$out/gpu_throughput.md"
+  timeout 230 "$py" benchmarks/gpu_throughput.py --device cuda --out "$out/gpu_throughput.md"
   echo "== stream"
-  timeout 120 "$py" benchmarks/stream_throughput.py --device cuda --batch 256 --batches 4 \
+  timeout 90 "$py" benchmarks/stream_throughput.py --device cuda --batch 256 --batches 4 \
     --batch-images 256 --repeats 2 --workers 0 2 --data "${SUBSLOPE_DATA_MIRROR:-../shared/data}" \
     --out "$out/stream_throughput.md"
   date

@@ -6,9 +6,17 @@ prior mean), Sérsic sources, drawn on the CPU (:func:`_common.make_scene`), ren
 the campaign's float32 settings on ``--device``; the first call of each batch size
 compiles and is reported separately, then the median of ``--repeats`` calls.
 
+Accuracy: the first image of each batch against the same parameters rendered on the CPU
+in float64 with the reference settings (n_terms 30, direct sums, eager): max |Δ| in units
+of the pixel noise σ and relative L2 (the budget: 0.1 σ and 1e-3). Peak GPU memory of
+each row.
+
 Training: one AdamW step (positives + rolled negatives, NRE loss, backward) of the
-``--arch`` preset on random 1x100x100 images at ``--train-batch``, fp32 and AMP (bf16 on
-CUDA), median of ``--steps`` steps after one warm-up.
+``--arch`` preset on random 1x100x100 images at ``--train-batch``: fp32, bf16 autocast,
+bf16 + channels_last, and bf16 + channels_last + torch.compile; median of ``--steps``
+steps after the warm-up (compilation reported apart). The last line turns the fastest
+training rate into the GPU-hours of the paper-scale training (``config/paper.yaml``,
+:func:`subslope.campaigns.cost.campaign_cost`).
 
     .venv/bin/python benchmarks/gpu_throughput.py --device cuda --out results.md
     .venv/bin/python benchmarks/gpu_throughput.py --device cpu --batches 2 --train-batch 8 \
@@ -30,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_info, make_scene  # noqa: E402
 
 from subslope.render import pipeline as R  # noqa: E402
+from subslope.validation.scenes import image_errors, one_image  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
@@ -55,11 +64,33 @@ def _train_step(loss_fn, opt, g: torch.Tensor, x: torch.Tensor, amp: bool) -> No
     opt.step()
 
 
+def _reset_peak(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+def _peak_gib(device: torch.device) -> float:
+    return torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else 0.0
+
+
+def _accuracy(batch, image: torch.Tensor) -> tuple[float, float]:
+    """Error of the first image of ``batch`` (rendered as ``image``) against its CPU
+    float64 reference render."""
+    one = one_image(batch, 0)
+    ref = R.RenderSettings(
+        device="cpu", dtype=torch.float64, n_terms=30, n_terms_main=30, compile="off",
+        chunk_members=64, population="direct",
+    )  # fmt: skip
+    reference = R.render(one.macro, one.psf.cpu(), ref, subhalos=one.subhalos, los=one.los)
+    return image_errors(image[None].cpu(), reference)
+
+
 def render_rows(device: torch.device, batches, repeats: int, compile_mode: str) -> list[dict]:
     """Images/s of :func:`subslope.render.pipeline.render` per batch size: the batched
     path (batching 'auto') with ``batch_images`` = the batch size."""
     rows = []
     for n in batches:
+        _reset_peak(device)
         settings = R.RenderSettings(device=str(device), compile=compile_mode, batch_images=n)
         t = time.perf_counter()
         batch = make_scene("train", n_img=n, n_sub=1500, with_los=True, seed=n)
@@ -71,6 +102,8 @@ def render_rows(device: torch.device, batches, repeats: int, compile_mode: str) 
         first = _timed(device, R.render, *args, subhalos=subs, los=los)
         times = [_timed(device, R.render, *args, subhalos=subs, los=los) for _ in range(repeats)]
         med = statistics.median(times)
+        image = R.render(*args, subhalos=subs, los=los)[0]
+        max_sigma, rel = _accuracy(batch, image)
         rows.append(
             {
                 "what": f"render N_sub=1500+LoS, batch {n}",
@@ -79,44 +112,79 @@ def render_rows(device: torch.device, batches, repeats: int, compile_mode: str) 
                 "images_per_s": round(n / med, 1),
                 "ms_per_image": round(1e3 * med / n, 3),
                 "cpu_draw_s": round(draw, 2),
+                "peak_gpu_gib": round(_peak_gib(device), 2),
+                "max_dsigma": f"{max_sigma:.2e}",
+                "rel_l2": f"{rel:.2e}",
             }
         )
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
+#: Training variants: (name, bf16 autocast, channels_last, torch.compile).
+TRAIN_VARIANTS = (
+    ("fp32", False, False, False),
+    ("bf16", True, False, False),
+    ("bf16 channels_last", True, True, False),
+    ("bf16 channels_last compiled", True, True, True),
+)
+
+
 def train_rows(device: torch.device, arch: str, batch: int, steps: int) -> list[dict]:
-    """Images/s of one estimator optimiser step, fp32 and AMP."""
+    """Images/s of one estimator optimiser step in each of :data:`TRAIN_VARIANTS`."""
     from subslope.nre.loss import NRELoss
     from subslope.nre.models import PRESETS, build_model, count_parameters
 
     rows = []
-    for amp in (False, True):
+    for name, amp, channels_last, compiled in TRAIN_VARIANTS:
         torch.manual_seed(0)
+        _reset_peak(device)
         model = build_model(PRESETS[arch], gamma_mean=2.0, gamma_std=0.52).to(device)
+        fmt = torch.channels_last if channels_last else torch.contiguous_format
+        model = model.to(memory_format=fmt)
         opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-2)
-        loss_fn = NRELoss(model)
-        x = torch.randn(batch, 1, 100, 100, device=device)
+        loss_fn = NRELoss(torch.compile(model) if compiled else model)
+        x = torch.randn(batch, 1, 100, 100, device=device).to(memory_format=fmt)
         g = 1.1 + 1.8 * torch.rand(batch, device=device)
         step = (loss_fn, opt, g, x, amp)
-        _timed(device, _train_step, *step)
+        first = _timed(device, _train_step, *step)
         med = statistics.median(_timed(device, _train_step, *step) for _ in range(steps))
-        peak = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else 0.0
         rows.append(
             {
                 "what": f"train step {arch} ({count_parameters(model):.2e} params), batch "
-                f"{batch}, {'AMP bf16' if amp else 'fp32'}",
+                f"{batch}, {name}",
+                "first_call_s": round(first, 3),
                 "median_s": round(med, 4),
                 "images_per_s": round(batch / med, 1),
-                "peak_gpu_gib": round(peak, 2),
+                "peak_gpu_gib": round(_peak_gib(device), 2),
             }
         )
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
+def paper_gpu_hours(rows: list[dict]) -> str:
+    """The paper-scale training's GPU-hours at the fastest measured training rate."""
+    from subslope.campaigns.cost import campaign_cost
+    from subslope.config import load
+
+    rates = [r["images_per_s"] for r in rows if r["what"].startswith("train step")]
+    if not rates:
+        return ""
+    root = Path(__file__).resolve().parents[1]
+    paper = load(root / "config" / "paper.yaml", env=False)
+    cost = campaign_cost(paper, gpu_images_per_s=max(rates))
+    return (
+        f"paper-scale training ({cost.training_images:,} images x {cost.max_epochs} epochs at "
+        f"most) at {max(rates):.0f} images/s: {cost.gpu_hours_training:.1f} GPU-hours"
+    )
+
+
 def markdown(rows: list[dict], info: dict) -> str:
-    keys = ["what", "images_per_s", "median_s", "ms_per_image", "first_call_s", "peak_gpu_gib"]
+    keys = [
+        "what", "images_per_s", "median_s", "ms_per_image", "first_call_s", "peak_gpu_gib",
+        "max_dsigma", "rel_l2",
+    ]  # fmt: skip
     lines = [
         f"machine: {info}",
         "",
@@ -152,6 +220,8 @@ def main(argv=None) -> int:
     if not args.skip_train:
         rows += train_rows(device, args.arch, args.train_batch, args.steps)
     text = markdown(rows, info)
+    hours = paper_gpu_hours(rows)
+    text += f"\n{hours}\n" if hours else ""
     print(text)
     if args.out:
         Path(args.out).write_text(text, encoding="utf-8")

@@ -519,3 +519,32 @@ def test_a_psf_file_that_is_no_psf_library_is_refused_naming_key_and_file(tmp_pa
     # a resources folder outside the project is allowed, with a warning that says so
     (warning,) = [w for w in plan_warnings(config, root=REPO_ROOT) if "resources_dir" in w]
     assert "outside the project folder" in warning and "results" in warning
+
+
+def test_cost_of_a_campaign_follows_its_config():
+    from subslope.campaigns.cost import campaign_cost
+
+    paper = cfg.load(REPO_ROOT / "config" / "paper.yaml", env=False)
+    cost = campaign_cost(
+        paper, seconds_per_image=0.05, bytes_per_image=40_000, gpu_images_per_s=500
+    )
+    assert cost.training_images == 5_000_000 and cost.images > cost.training_images
+    assert cost.cpu_hours_simulation == pytest.approx(cost.images * 0.05 / 3600)
+    assert cost.disk_gb_shards == pytest.approx(cost.images * 40_000 / 1e9)
+    assert cost.gpu_hours_training == pytest.approx(5e6 * cost.max_epochs / 500 / 3600)
+    reduced = campaign_cost(cfg.load(REPO_CONFIG, env=False))
+    assert reduced.images < cost.images and reduced.shard_jobs < cost.shard_jobs
+
+
+def test_cli_cost_prints_every_line(capsys):
+    from subslope.cli import main
+
+    assert main(["cost", "--config", str(REPO_ROOT / "config" / "paper.yaml")]) == 0
+    out = capsys.readouterr().out
+    for line in (
+        "shard jobs",
+        "CPU-hours, simulation",
+        "disk of the shards",
+        "GPU-hours, training",
+    ):
+        assert line in out

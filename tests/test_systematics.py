@@ -96,8 +96,12 @@ def _write(path: Path, data: dict) -> Path:
         ({"run_name": "reduced"}, "must set a run_name of its own"),
         ({"run_name": "v", "seed": -1}, "config key seed"),
         ({"run_name": "v", "simulation": {"sources": {"folder": []}}}, "simulation.sources"),
+        (
+            {"run_name": "v", "instrument": {"noise_correlation": [0.5, 0.3]}},
+            r"instrument.noise_correlation = \[0.5, 0.3\]: a range",
+        ),
     ],
-    ids=["no-run-name", "campaign-run-name", "bad-seed", "bad-folder"],
+    ids=["no-run-name", "campaign-run-name", "bad-seed", "bad-folder", "plan-problem"],
 )
 def test_a_bad_variant_file_is_named(tmp_path, overlay, message):
     variant = _write(tmp_path / "v.yaml", overlay)

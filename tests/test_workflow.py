@@ -561,6 +561,10 @@ def test_real_run_tiny_reruns(tiny_run, campaign, data_dir):
         "simulate_cdm_shard": 2,
         "evaluate_cdm_profiles": 2,
         "measure_cdm_grid": 1,
+        "subhalo_free_profiles": 2,  # the new multiplier's sets without their subhalos
+        "cdm_visibility": 1,
+        "signal_budget_cdm": 2,
+        "summarize_signal_budget": 1,
         "analyze_hst": 1,
         "write_summary": 1,
         "all": 1,

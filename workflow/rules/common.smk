@@ -245,6 +245,23 @@ def derived_seed(section):
     )
 
 
+# Signal budget: shard 0 of every scene but validation, one table each.
+def budget_jobs():
+    """The shard-0 jobs of every simulated scene but validation (each multiplier apart)."""
+    return [
+        job for job in SHARD_JOBS if job["shard"] == 0 and job["scene"] != "validation"
+    ]
+
+
+def budget_path(job):
+    """The signal-budget table of one shard job (mirrors the shard path)."""
+    return (
+        job["path"]
+        .replace("results/simulate_shard/", "results/signal_budget/", 1)
+        .replace(".h5", ".csv")
+    )
+
+
 def benchmark_files():
     """Benchmark TSVs of every job of the stages that run, grouped by stage."""
     out = {}

@@ -4,22 +4,6 @@
 # linearised refit (subslope.stages.signal_budget). The validation scene is left out.
 
 
-def budget_jobs():
-    """The shard-0 jobs of every simulated scene but validation (each multiplier apart)."""
-    return [
-        job for job in SHARD_JOBS if job["shard"] == 0 and job["scene"] != "validation"
-    ]
-
-
-def budget_path(job):
-    """The signal-budget table of one shard job (mirrors the shard path)."""
-    return (
-        job["path"]
-        .replace("results/simulate_shard/", "results/signal_budget/", 1)
-        .replace(".h5", ".csv")
-    )
-
-
 rule signal_budget:
     input:
         shard="results/simulate_shard/{scene}/shard_{shard}.h5",

@@ -21,6 +21,5 @@ rule write_summary:
         benchmarks=benchmark_files(),
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
-        cores=workflow.cores,
     script:
         "../scripts/write_summary.py"

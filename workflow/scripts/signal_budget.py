@@ -4,10 +4,13 @@ subhalos of the first images of one shard."""
 import logging
 
 from subslope.logs import log_to_file
+from subslope.render.kernels import use_compile_cache
+from subslope.simulation.sources import cosmos_folders
 from subslope.stages.signal_budget import signal_budget_shard
 
 log_to_file(snakemake.log[0], outputs=snakemake.output)
 try:
+    use_compile_cache(snakemake.config["simulation"]["render"].get("compile_cache"))
     signal_budget_shard(
         snakemake.input.shard,
         snakemake.output.csv,
@@ -15,6 +18,7 @@ try:
         mask_factor=snakemake.params.mask_factor,
         scene=snakemake.wildcards.scene,
         multiplier=snakemake.wildcards.get("multiplier"),
+        cosmos=[str(f) for f in cosmos_folders(snakemake.config)],
     )
 except Exception:
     logging.exception("signal_budget failed")

@@ -38,7 +38,6 @@ try:
         run_name=snakemake.params.run_name,
         config_hash=snakemake.params.config_hash,
         config_files=snakemake.params.config_files,
-        cores=snakemake.params.cores,
     )
     logging.info("wrote %s and %s", path, record)
 except Exception:

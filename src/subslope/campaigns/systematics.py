@@ -30,6 +30,7 @@ import yaml
 
 from subslope import config as _config
 from subslope.io.atomic import write_csv, write_text
+from subslope.plan import plan_problems
 
 __all__ = [
     "SYSTEMATICS_COLUMNS",
@@ -135,7 +136,9 @@ def read_variants(
     campaign: Mapping[str, Any], *, root: str | os.PathLike[str] = "."
 ) -> list[Variant]:
     """The variants of ``campaign`` (raw keys; ``systematics.variants``), each overlay
-    read with its layers, merged (:func:`variant_config`) and validated. Raises
+    read with its layers, merged (:func:`variant_config`) and validated, the checks the
+    workflow makes before its first job included (:func:`subslope.plan.plan_problems`),
+    so that no variant runs while a later one cannot. Raises
     :class:`SystematicsError` naming the file for an overlay without its own
     ``run_name``, two variants of one name, or an invalid merged config."""
     root = Path(root)
@@ -161,9 +164,12 @@ def read_variants(
         seen[name] = file
         merged = variant_config(campaign, overlay, root=root, shard_cache=section["shard_cache"])
         try:
-            _config.validate(merged)
+            problems = plan_problems(_config.validate(merged))
         except _config.ConfigError as exc:
             raise SystematicsError(f"variant file {file}: {exc}") from None
+        if problems:  # every variant is checked before the first one runs
+            listed = "\n".join(f"  - {p}" for p in problems)
+            raise SystematicsError(f"variant file {file}: invalid configuration:\n{listed}")
         variants.append(Variant(name, file, folder / name, merged))
     return variants
 

@@ -11,6 +11,9 @@ compare-runs BASELINE NEW [--ignore-attr NAME ...]
     Two campaigns' results/ folders, number by number (exit 1 when anything differs).
 results-page RESULTS [--out docs/results.md] [--command CMD]
     The page of a finished campaign's results (docs/results.md), generated.
+cost [--config C ...] [--results DIR] [--gpu-images-per-s N] [-- SNAKEMAKE ARGS]
+    What a campaign costs: shard jobs, CPU-hours of simulation, disk of the shards,
+    GPU-hours of training (and, given Snakemake arguments, its cluster jobs).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ def add_campaign_commands(commands) -> None:
     _add_cluster_jobs_command(commands)
     _add_compare_runs_command(commands)
     _add_results_page_command(commands)
+    _add_cost_command(commands)
 
 
 def _systematics(args: argparse.Namespace) -> int:
@@ -263,3 +267,74 @@ def _add_results_page_command(commands) -> None:
         help="the command that made the campaign (default: read from results/run.json)",
     )  # fmt: skip
     p.set_defaults(func=_results_page)
+
+
+def _cost(args: argparse.Namespace) -> int:
+    from subslope.campaigns.cost import (
+        DEFAULT_BYTES_PER_IMAGE,
+        DEFAULT_GPU_IMAGES_PER_S,
+        DEFAULT_SECONDS_PER_IMAGE,
+        campaign_cost,
+        measured_costs,
+    )
+    from subslope.config import ConfigError, load
+
+    try:
+        config = load(args.config or ["config/config.yaml"], env=False)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    measured = measured_costs(args.results) if args.results else {}
+    where = f"measured on {args.results}" if args.results else ""
+    sources = {
+        "seconds_per_image": where if "seconds_per_image" in measured else "stated default",
+        "bytes_per_image": where if "bytes_per_image" in measured else "stated default",
+        "gpu_images_per_s": "given" if args.gpu_images_per_s else "stated default (paper, V100)",
+    }
+    cost = campaign_cost(
+        config,
+        seconds_per_image=measured.get("seconds_per_image", DEFAULT_SECONDS_PER_IMAGE),
+        bytes_per_image=measured.get("bytes_per_image", DEFAULT_BYTES_PER_IMAGE),
+        gpu_images_per_s=args.gpu_images_per_s or DEFAULT_GPU_IMAGES_PER_S,
+        sources=sources,
+    )
+    print(f"shard jobs            {cost.shard_jobs:>12,}")
+    print(f"images simulated      {cost.images:>12,}")
+    print(
+        f"CPU-hours, simulation {cost.cpu_hours_simulation:>12,.1f}"
+        f"  ({cost.seconds_per_image * 1e3:.1f} ms/image, {sources['seconds_per_image']})"
+    )
+    print(
+        f"disk of the shards    {cost.disk_gb_shards:>12,.1f} GB"
+        f"  ({cost.bytes_per_image / 1e3:.1f} KB/image, {sources['bytes_per_image']})"
+    )
+    print(f"GPU-hours, training   {cost.gpu_hours_training:>12,.1f}"
+          f"  ({cost.training_images:,} images x {cost.max_epochs} epochs at most, "
+          f"{cost.gpu_images_per_s:.0f} images/s, {sources['gpu_images_per_s']})")  # fmt: skip
+    extra = [a for a in args.snakemake_args if a != "--"]
+    if extra:
+        return _cluster_jobs(argparse.Namespace(snakemake_args=extra, total=False))
+    return 0
+
+
+def _add_cost_command(commands) -> None:
+    p = commands.add_parser(
+        "cost", help="shard jobs, CPU-hours, disk and GPU-hours of a campaign before it runs"
+    )
+    p.add_argument(
+        "--config", nargs="+", default=None, help="config file(s) (default config/config.yaml)"
+    )
+    p.add_argument(
+        "--results", type=Path, default=None,
+        help="a finished campaign's results/ folder: its measured cost per image",
+    )  # fmt: skip
+    p.add_argument(
+        "--gpu-images-per-s", type=float, default=None,
+        help="training images per second of one GPU (default: the paper's V100 figure)",
+    )  # fmt: skip
+    p.add_argument(
+        "snakemake_args", nargs=argparse.REMAINDER,
+        help="after --: Snakemake arguments to count the cluster jobs too, e.g. "
+        "-- --profile profiles/slurm --configfile config/paper.yaml",
+    )  # fmt: skip
+    p.set_defaults(func=_cost)

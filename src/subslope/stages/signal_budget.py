@@ -149,9 +149,11 @@ def _image_budget(inp: dict[str, Any], mask_factor: float) -> tuple[float, float
 
 
 def budget_rows(
-    shard_path, n_images: int, *, mask_factor: float, scene: str, multiplier=None
+    shard_path, n_images: int, *, mask_factor: float, scene: str, multiplier=None, cosmos=None
 ) -> list[dict[str, Any]]:
-    """One row (:data:`BUDGET_COLUMNS`) per image of the first ``n_images`` of a shard."""
+    """One row (:data:`BUDGET_COLUMNS`) per image of the first ``n_images`` of a shard;
+    ``cosmos``: this campaign's COSMOS folders (a shard from the cache may name another
+    campaign's)."""
     from subslope.io.shards import open_shard
     from subslope.simulation.rerender import stored_inputs
 
@@ -160,10 +162,9 @@ def budget_rows(
         n = min(int(n_images), len(shard))
         has_subhalos = shard.attrs["subhalo_profile"] != "none"
         for i in range(n):
-            inp = stored_inputs(shard, [i])
-            macro = inp["macro"]
+            macro = {k: np.asarray(v[i : i + 1]) for k, v in shard.params.items()}
             if has_subhalos and int(macro["n_sub"][0]) > 0:
-                fixed, refit = _image_budget(inp, mask_factor)
+                fixed, refit = _image_budget(stored_inputs(shard, [i], cosmos=cosmos), mask_factor)
             else:
                 fixed = refit = 0.0
             rows.append(
@@ -182,11 +183,23 @@ def budget_rows(
 
 
 def signal_budget_shard(
-    shard_path, out_csv, n_images: int, *, mask_factor: float, scene: str, multiplier=None
+    shard_path,
+    out_csv,
+    n_images: int,
+    *,
+    mask_factor: float,
+    scene: str,
+    multiplier=None,
+    cosmos=None,
 ) -> Path:
     """Rule signal_budget: :func:`budget_rows` of one shard written to ``out_csv``."""
     rows = budget_rows(
-        shard_path, n_images, mask_factor=mask_factor, scene=scene, multiplier=multiplier
+        shard_path,
+        n_images,
+        mask_factor=mask_factor,
+        scene=scene,
+        multiplier=multiplier,
+        cosmos=cosmos,
     )
     log.info(
         "%s: median dchi2 fixed %.3g, refit %.3g over %d images",

@@ -528,10 +528,10 @@ def write_summary(
 
 
 def write_run_record(
-    out_json, *, run_name: str, config_hash: str, config_files: Sequence[str], cores
+    out_json, *, run_name: str, config_hash: str, config_files: Sequence[str]
 ) -> Path:
     """``run.json`` beside the summary: what made the campaign (run name, config files and
-    hash, Snakemake's cores, package version), on which machine
+    hash, package version), on which machine
     (:func:`subslope.devices.machine_description`) and when (UTC). It records the
     environment, not a result: ``subslope compare-runs`` skips it, and
     ``subslope results-page`` quotes it."""
@@ -544,7 +544,6 @@ def write_run_record(
         "run_name": run_name,
         "config_hash": config_hash,
         "config_files": list(config_files),
-        "cores": cores,
         "subslope": __version__,
         "finished_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M"),
         "machine": machine_description(),

@@ -256,7 +256,9 @@ def halo_free_shard(
     from subslope.nre.train import load_estimator
     from subslope.simulation.observing import fitted_light_models
     from subslope.simulation.rerender import halo_free_images, subhalo_free_images
+    from subslope.simulation.sources import cosmos_folders
 
+    cosmos = [str(f) for f in cosmos_folders(config)]  # this campaign's, wherever it runs
     unknown = set(out_paths) - set(RERENDERS)
     if unknown:
         raise ValueError(f"halo-free variants {sorted(unknown)}: allowed {list(RERENDERS)}")
@@ -270,9 +272,11 @@ def halo_free_shard(
     written = {}
     for variant, out in out_paths.items():
         images = (
-            subhalo_free_images(shard_path, np.arange(n))
+            subhalo_free_images(shard_path, np.arange(n), cosmos=cosmos)
             if variant == "subhalos_removed"
-            else halo_free_images(shard_path, np.arange(n), keep_sheets=variant == "sheets_kept")
+            else halo_free_images(
+                shard_path, np.arange(n), keep_sheets=variant == "sheets_kept", cosmos=cosmos
+            )
         )
         light = fitted_light_models(config, images, par["theta_e"], psf)[1] if needs_light else None
         prof = estimator_profiles(
