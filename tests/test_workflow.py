@@ -324,6 +324,7 @@ SUMMARY_TABLES = (
     "cdm_visibility",
     "trend",
     "stage_runtime",
+    "response",
 )
 
 FIGURES = (
@@ -336,6 +337,8 @@ FIGURES = (
     "fig5_hst_profiles",
     "fig6_hst_combined",
     "null_tests",
+    "signal_budget",
+    "response",
 )
 
 

@@ -381,6 +381,7 @@ SUMMARY_CSVS = [
     "cdm_visibility",
     "trend",
     "stage_runtime",
+    "response",
 ]
 # Hash of the whole validated config except the data location (machine-specific).
 CONFIG_HASH = subslope.config.config_hash(

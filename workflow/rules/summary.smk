@@ -8,6 +8,8 @@ rule write_summary:
     output:
         md=update("results/summary.md"),
         run=update("results/run.json"),
+        response_pdf=update("results/figures/response.pdf"),
+        response_png=update("results/figures/response.png"),
         csv=update(expand("results/{name}.csv", name=SUMMARY_CSVS)),
     log:
         "logs/write_summary.log",

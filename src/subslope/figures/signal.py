@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 
 from subslope.figures.save import footer
 
-__all__ = ["signal_budget_figure"]
+__all__ = ["response_figure", "signal_budget_figure"]
 
 #: Δχ² marks drawn on the figure: invisible, and an individual detection.
 MARKS = ((1.0, "Δχ² = 1"), (25.0, "Δχ² = 25"))
@@ -51,6 +51,42 @@ def signal_budget_figure(
     ax.set_xlabel("Δχ² of the subhalos per image (inside the estimator's mask)")
     ax.legend(loc="lower right", fontsize=7)
     fig.suptitle("Signal budget: what an ideal observer could see of the subhalos", fontsize=10)
+    footer(fig, run_name, source)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    return fig
+
+
+def response_figure(table, *, run_name: str = "", source: str | None = None) -> Figure:
+    """The estimator's response (shift of the stack γ_MLE when the halos are removed)
+    against the stack's ideal-observer Δχ² after the refit, one point per scene and
+    multiplier (NFW, tNFW, EPL), error bars where the shift is paired."""
+    fig = Figure(figsize=(6.0, 4.2))
+    ax = fig.subplots()
+    if not len(table):
+        ax.text(0.5, 0.5, "no signal budget or null tests in this campaign", ha="center",
+                transform=ax.transAxes)  # fmt: skip
+        footer(fig, run_name, source)
+        return fig
+    styles = {"nfw": ("tab:blue", "o"), "tnfw": ("tab:orange", "s"), "test_epl": ("k", "D")}
+    for scene, group in table.groupby("scene", sort=False):
+        color, marker = styles.get(scene, ("tab:gray", "^"))
+        x = np.maximum(group["stack_refit"].to_numpy(float), 1e-3)
+        ax.errorbar(
+            x, group["shift"], yerr=group["shift_se"].fillna(0.0), fmt=marker, color=color,
+            label=scene + ("" if group["paired"].all() else " (medians, not paired)"),
+        )  # fmt: skip
+        for xi, yi, a in zip(x, group["shift"], group["multiplier"]):
+            if np.isfinite(a):
+                ax.annotate(f"a={a:g}", (xi, yi), textcoords="offset points", xytext=(4, 4),
+                            fontsize=7, color=color)  # fmt: skip
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    for value, _ in MARKS:
+        ax.axvline(value, color="tab:red", ls="--", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("ideal observer's Δχ² of a stack, smooth model refitted")
+    ax.set_ylabel("shift of the stack γ_MLE (with − without halos)")
+    ax.legend(fontsize=7)
+    fig.suptitle("Estimator response against the signal the images hold", fontsize=10)
     footer(fig, run_name, source)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     return fig
