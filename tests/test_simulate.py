@@ -312,3 +312,19 @@ def test_los_nfw_concentrations(rng, apply_to_los):
     assert pop.r_s[i] == pytest.approx(float(r_s), rel=1e-12) and pop.alpha_rs[i] == pytest.approx(
         float(alpha), rel=1e-12
     )
+
+
+def test_a_new_stage_changes_no_shard_job_param(tmp_path):
+    """The shard jobs' Snakemake params leave the stage flags out: adding a stage (or
+    switching one) reruns no shard."""
+    from subslope import config as cfgmod
+    from subslope.plan import shard_job_config, with_stages_off
+
+    config = cfgmod.load(REPO_ROOT / "config" / "tiny.yaml", env=False)
+    job = shard_job_config(config, "train")
+    param = {k: v for k, v in job.items() if k != "stages"}
+    off = cfgmod.validate({**config, "stages": {**config["stages"], "hst": False}})
+    assert {k: v for k, v in shard_job_config(off, "train").items() if k != "stages"} == param
+    assert with_stages_off(param) == job
+    text = (REPO_ROOT / "workflow" / "rules" / "common.smk").read_text()
+    assert 'if k != "stages"' in text

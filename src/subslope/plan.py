@@ -34,6 +34,8 @@ __all__ = [
     "shard_job_config",
     "shard_jobs",
     "shard_path",
+    "stages_off",
+    "with_stages_off",
 ]
 
 #: Folder of the simulated shards (rule simulate_shard).
@@ -102,10 +104,11 @@ def shard_job_config(
     multipliers up to and including ``multiplier`` (its position in the list sets the
     shard's seed, so appending a multiplier changes no existing job; null for the other
     scenes); whether the lens light is fitted (``simulation.light_fit`` resolved) and the
-    lens-centre settings the fit starts from. Every stage is off,
-    so the job's own validation checks only what the job uses. Passed to the job as a
-    Snakemake param, so a change of any of these values reruns exactly the shards it
-    affects.
+    lens-centre settings the fit starts from. Every stage is off
+    (:func:`with_stages_off`), so the job's own validation checks only what the job
+    uses. Passed to the job as a Snakemake param without its ``stages`` (which name no
+    image), so a change of any of these values reruns exactly the shards it affects and
+    a new stage reruns none.
     """
     config = _config.validate(config)
     sim = config["simulation"]
@@ -129,8 +132,19 @@ def shard_job_config(
             "light_fit": _config.light_fit_enabled(config),
         },
         "hst": {"lens_centre": config["hst"]["lens_centre"]},
-        "stages": {name: False for name in _config.STAGE_NEEDS},
+        "stages": stages_off(),
     }
+
+
+def stages_off() -> dict[str, bool]:
+    """Every stage flag off (a shard job's config checks only what the job uses)."""
+    return {name: False for name in _config.STAGE_NEEDS}
+
+
+def with_stages_off(job: Mapping[str, Any]) -> dict[str, Any]:
+    """``job`` (a :func:`shard_job_config`, perhaps without its ``stages``) with every
+    stage flag off."""
+    return {**job, "stages": stages_off()}
 
 
 def plan_problems(config: Mapping[str, Any]) -> list[str]:

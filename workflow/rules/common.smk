@@ -108,10 +108,12 @@ _SIM_HASH = {}
 
 
 def shard_job(wildcards):
-    """The resolved configuration of one shard job, passed as a param (so a change reruns it)."""
+    """The resolved configuration of one shard job, passed as a param (so a change reruns
+    it); its stage flags are left out (a new stage reruns no shard)."""
     key = (wildcards.scene, wildcards.get("multiplier"))
     if key not in _SHARD_JOB:  # cached per scene and multiplier: the shards share it
-        _SHARD_JOB[key] = subslope.plan.shard_job_config(config, *key)
+        job = subslope.plan.shard_job_config(config, *key)
+        _SHARD_JOB[key] = {k: v for k, v in job.items() if k != "stages"}
     return _SHARD_JOB[key]
 
 
@@ -154,7 +156,8 @@ def stream_job():
     stream): a change of it retrains, as a shard job's would resimulate."""
     if not STREAMING:
         return None
-    return subslope.plan.shard_job_config(config, subslope.config.STREAMED_SCENE)
+    job = subslope.plan.shard_job_config(config, subslope.config.STREAMED_SCENE)
+    return {k: v for k, v in job.items() if k != "stages"}
 
 
 def simulation_targets():

@@ -17,6 +17,7 @@ from typing import Any
 from subslope.config import RUN_ONLY_RENDER_KEYS, config_hash
 from subslope.io.shard_cache import code_digest, put_in_cache, take_from_cache
 from subslope.io.shards import FORMAT_VERSION
+from subslope.plan import with_stages_off
 from subslope.simulation.resolve import simulation_sections
 
 __all__ = [
@@ -94,7 +95,7 @@ def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str,
     (:func:`subslope.plan.shard_job_config`) plus, from the workflow's config ``run``,
     what changes no image: ``data`` (where the resources live) and the run-only render
     keys; sets the compile cache (:func:`subslope.render.kernels.use_compile_cache`)."""
-    config = copy.deepcopy(dict(job))
+    config = copy.deepcopy(with_stages_off(job))
     config["data"] = copy.deepcopy(run["data"])
     render = run["simulation"]["render"]
     config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
@@ -120,6 +121,7 @@ def simulate_shard_job(
     are taken (:func:`runnable_config`; ``simulation.shard_cache``: a shard of the same
     key there is taken instead of simulated, and a new one is put there); ``threads``:
     torch's CPU threads while simulating."""
+    job = with_stages_off(job)
     cache = run["simulation"].get("shard_cache")
     key = shard_cache_key(job, scene, shard, multiplier) if cache else ""
     if cache and take_from_cache(cache, scene, key, out_path, shard=shard, multiplier=multiplier):
