@@ -641,12 +641,10 @@ def test_a_job_that_fails_after_a_config_change_runs_again(finished_campaign, da
 
     model = torch.load(results / "train_estimator" / "model.pt", weights_only=True)
     assert model["config"]["max_epochs"] == 3
-    assert (
-        "Nothing to be done"
-        in run_snakemake(
-            root, "-n", *TINY, str(overlay), "--until", "train_estimator", mirror=data_dir
-        ).stdout
+    dry = run_snakemake(
+        root, "-n", *TINY, str(overlay), "--until", "train_estimator", mirror=data_dir
     )
+    assert "Nothing to be done" in dry.stdout or re.search(r"total\s+0\n", dry.stdout), dry.stdout
 
 
 @pytest.mark.slow

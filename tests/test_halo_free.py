@@ -158,7 +158,7 @@ def test_sheet_channel_with_fewer_stacks_than_regressors_has_no_partial_row():
 
 
 @pytest.mark.slow
-def test_a_shard_made_on_cuda_re_renders_on_this_machine(tiny_run, tmp_path):
+def test_a_shard_made_on_cuda_re_renders_on_this_machine(tiny_run, tmp_path, monkeypatch):
     """The re-renders take dtype and knobs from the shard but render on a device this
     job has: a shard whose settings say CUDA re-renders on a CPU-only node, to the same
     images as with its settings saying CPU."""
@@ -172,6 +172,7 @@ def test_a_shard_made_on_cuda_re_renders_on_this_machine(tiny_run, tmp_path):
 
     if torch.cuda.is_available():
         pytest.skip("needs a machine without CUDA")
+    monkeypatch.chdir(tiny_run.parent)  # the shard names its COSMOS folders relative to it
     shard = tmp_path / "cuda_made.h5"
     shutil.copyfile(tiny_run / "simulate_shard" / "nfw" / "a1" / "shard_0.h5", shard)
     with h5py.File(shard, "r+") as fh:

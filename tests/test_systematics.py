@@ -5,7 +5,6 @@ variants of the tiny campaign run through `subslope systematics` sharing its sha
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -25,7 +24,7 @@ from subslope.campaigns.systematics import (
     reference_config,
     variant_config,
 )
-from subslope.io.shard_cache import CODE_PARTS, cached_path, take_from_cache
+from subslope.io.shard_cache import CODE_PARTS, take_from_cache
 from subslope.plan import plan_problems, shard_job_config
 from subslope.stages.simulate import shard_cache_key
 
@@ -155,18 +154,19 @@ def _shards(results: Path) -> list[Path]:
 
 
 def test_a_corrupt_cached_shard_is_removed_not_used(tiny_run, tmp_path):
+    from subslope.io.shard_cache import put_in_cache, shard_identity
+
     shard = _shards(tiny_run)[0]
-    cached = cached_path(tmp_path / "cache", "s", "k")
-    cached.parent.mkdir(parents=True)
-    shutil.copyfile(shard, cached)  # a copy of its own, to corrupt
-    assert take_from_cache(tmp_path / "cache", "s", "k", tmp_path / "good.h5")
+    scene = shard_identity(shard)["scene"]
+    cached = put_in_cache(tmp_path / "cache", scene, "k", shard)  # a copy of its own
+    assert take_from_cache(tmp_path / "cache", scene, "k", tmp_path / "good.h5")
     assert (tmp_path / "good.h5").read_bytes() == shard.read_bytes()
     with h5py.File(cached, "r") as fh:
         offset = fh["images"].id.get_chunk_info(0).byte_offset
     with open(cached, "r+b") as fh:
         fh.seek(offset + 10)
         fh.write(b"\xff\xff\xff\xff")
-    assert not take_from_cache(tmp_path / "cache", "s", "k", tmp_path / "out.h5")
+    assert not take_from_cache(tmp_path / "cache", scene, "k", tmp_path / "out.h5")
     assert not cached.exists() and not (tmp_path / "out.h5").exists()
 
 

@@ -51,15 +51,11 @@ def analyze_hst(
     config: Mapping[str, Any] | None = None,
     loo_csv=None,
 ):
-    """Profiles, intervals and figures 5–6 of the real HST lenses.
-
-    Profiles of :func:`hst_profiles`; intervals use τ_1, the stack of ``combine``
-    (default all) τ_N. Writes ``out_h5`` (names, log_ratio, gammas, theta_e, lens_x,
-    lens_y, combined), ``out_csv`` (a row per system and a ``combined`` row: mle, lower,
-    upper, threshold, threshold_n, flags) and the figures (figure 6's a = 1 bands from
-    ``cdm_csv``; columns ``inside_domain``, ``outside_domain`` from ``domain_csv``), and
-    ``loo_csv``: the combined stack with each lens left out (:func:`leave_one_out`).
-    """
+    """Profiles (:func:`hst_profiles`), intervals (τ_1; the stack of ``combine``, default
+    all, τ_N) and figures 5–6 of the real HST lenses: ``out_h5`` (names, log_ratio,
+    gammas, theta_e, lens_x, lens_y, combined), ``out_csv`` (a row per system and a
+    ``combined`` row; ``inside_domain`` from ``domain_csv``), the figures (figure 6's
+    a = 1 bands from ``cdm_csv``), ``loo_csv`` (:func:`leave_one_out`)."""
     import pandas as pd
 
     names, geometry, prof, meta = hst_profiles(
@@ -89,8 +85,7 @@ def analyze_hst(
     )
     table = _with_domain_flags(pd.DataFrame(rows), domain_csv)
     write_text(out_csv, table.to_csv(index=False))
-    if loo_csv is not None:
-        _write_leave_one_out(loo_csv, [names[k] for k in idx], prof[idx], g, thr)
+    _write_leave_one_out(loo_csv, [names[k] for k in idx], prof[idx], g, thr)
     _write_h5(out_h5, names, prof, g, geometry, combined, combine, run_name, model_path)
     source = f"estimator {meta.get('config_hash', '')}"
     shown = {s: prof[names.index(s)] for s in (show or names)}
@@ -191,6 +186,8 @@ def _lenses(hst_folder, pixel_scale: float, lens_centre: Mapping[str, Any] | Non
 def _write_leave_one_out(path, systems, profiles, g, thr) -> None:
     import pandas as pd
 
+    if path is None:
+        return
     tau, n = threshold_for(thr, max(len(systems) - 1, 1))
     write_text(path, pd.DataFrame(leave_one_out(systems, profiles, g, tau, n)).to_csv(index=False))
 
