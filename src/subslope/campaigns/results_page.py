@@ -75,6 +75,13 @@ def _in_distribution(results: Path) -> list[str]:
             else "The halo-free null test FAILS: with the halos removed the reading still "
             "follows the label, so the estimator reads γ from something else."
         )
+        kept = halo_free.get("sheets_kept", {})
+        if kept and not _true(kept.get("passes")):
+            out.append(
+                "With the halos' negative sheets kept the reading still follows the label "
+                f"(stack ρ = {_num(kept['rho_stack']):.2f}): the sheets' amplitude, a "
+                "function of the members' γ, carries it (the summary's sheet-channel table)."
+            )
     return out
 
 
@@ -97,7 +104,17 @@ def _cdm(results: Path) -> list[str]:
             "the subhalos' slope."
         )
     if seen:
-        out.append(f"The CDM subhalos of {', '.join(seen)} move the estimator.")
+        moved = "; ".join(
+            f"{label(r)} {_num(r['shift_mean']):+.3f} ± {_num(r['shift_mean_se']):.3f}"
+            for r in rows
+            if _true(r["visible"])
+        )
+        out.append(
+            f"The CDM subhalos move the estimator's stack γ_MLE (paired shift against the "
+            f"same sets without them, Wilcoxon p < 0.05): {moved}. Compare each shift with "
+            "the signal the images hold (results/response.csv): a shift that does not grow "
+            "with the signal is the estimator's limit, not the data's."
+        )
     return out
 
 
