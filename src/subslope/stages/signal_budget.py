@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,10 @@ from subslope.io.atomic import write_csv
 
 __all__ = [
     "BUDGET_COLUMNS",
+    "budget_image",
+    "shifted",
+    "smooth_directions",
+    "step_of",
     "RESPONSE_COLUMNS",
     "response_table",
     "SMOOTH_KEYS",
@@ -77,27 +82,49 @@ BUDGET_COLUMNS = (
 )
 
 
+def smooth_directions(macro: dict[str, np.ndarray]) -> list[str]:
+    """The smooth parameters of a one-image ``macro`` that the refit moves: the keys of
+    :data:`SMOOTH_KEYS` it has, then ``a3_c``, ``a3_s``, ``a4_c``, ``a4_s`` (the
+    multipoles' Cartesian components) where it has multipoles."""
+    names = [key for key in SMOOTH_KEYS if key in macro]
+    for _, amp, ang in MULTIPOLES:
+        if amp in macro and ang in macro:
+            names += [f"{amp}_c", f"{amp}_s"]
+    return names
+
+
+def step_of(name: str) -> float:
+    """The central-difference step of a direction of :func:`smooth_directions`."""
+    return SMOOTH_KEYS.get(name, MULTIPOLE_STEP)
+
+
+def shifted(macro: dict[str, np.ndarray], names, offsets) -> dict[str, np.ndarray]:
+    """``macro`` moved by ``offsets`` along the directions ``names``
+    (:func:`smooth_directions`): added to a parameter, or to a multipole's Cartesian
+    component ``a·cos mφ`` (``_c``) or ``a·sin mφ`` (``_s``)."""
+    out = dict(macro)
+    off = dict(zip(names, offsets))
+    for m, amp, ang in MULTIPOLES:
+        dx, dy = off.get(f"{amp}_c", 0.0), off.get(f"{amp}_s", 0.0)
+        if amp in macro and ang in macro and (dx or dy):  # untouched: exactly as stored
+            cx = macro[amp] * np.cos(m * macro[ang]) + dx
+            cy = macro[amp] * np.sin(m * macro[ang]) + dy
+            out[amp], out[ang] = np.hypot(cx, cy), np.arctan2(cy, cx) / m
+    for name, value in zip(names, offsets):
+        if name in SMOOTH_KEYS:
+            out[name] = macro[name] + value
+    return out
+
+
 def _perturbed(macro: dict[str, np.ndarray]) -> list[tuple[str, dict, dict]]:
     """``(name, macro + step, macro − step)`` for every smooth direction of a one-image
     ``macro``."""
+    names = smooth_directions(macro)
     out = []
-    for key, step in SMOOTH_KEYS.items():
-        if key in macro:
-            plus = {**macro, key: macro[key] + step}
-            minus = {**macro, key: macro[key] - step}
-            out.append((key, plus, minus))
-    for m, amp, ang in MULTIPOLES:
-        if amp not in macro or ang not in macro:
-            continue
-        cx = macro[amp] * np.cos(m * macro[ang])
-        cy = macro[amp] * np.sin(m * macro[ang])
-        for comp, (dx, dy) in (("c", (1.0, 0.0)), ("s", (0.0, 1.0))):
-            pair = []
-            for sign in (1.0, -1.0):
-                x = cx + sign * MULTIPOLE_STEP * dx
-                y = cy + sign * MULTIPOLE_STEP * dy
-                pair.append({**macro, amp: np.hypot(x, y), ang: np.arctan2(y, x) / m})
-            out.append((f"{amp}_{comp}", pair[0], pair[1]))
+    for k, name in enumerate(names):
+        step = np.zeros(len(names))
+        step[k] = step_of(name)
+        out.append((name, shifted(macro, names, step), shifted(macro, names, -step)))
     return out
 
 
@@ -111,14 +138,29 @@ def _noise_weight(instrument) -> float:
     return noise_kernel_weight(rho)
 
 
-def _image_budget(inp: dict[str, Any], mask_factor: float) -> tuple[float, float]:
-    """``(dchi2_fixed, dchi2_refit)`` of the one image of the stored inputs ``inp``."""
+@dataclass
+class BudgetImage:
+    """One image of the signal budget: ``render(macro, subhalos)`` (noise-free, float64,
+    everything else as stored), its ``macro``, the difference ``diff`` that its subhalos
+    make, the noise ``sigma``, the estimator's ``mask`` and the correlation weight ``w``."""
+
+    render: Any
+    macro: dict
+    subhalos: Any
+    diff: np.ndarray
+    sigma: np.ndarray
+    mask: np.ndarray
+    w: float
+
+
+def budget_image(inp: dict[str, Any], mask_factor: float) -> BudgetImage:
+    """The :class:`BudgetImage` of the one image of the stored inputs ``inp``
+    (:func:`subslope.simulation.rerender.stored_inputs`)."""
     import torch
 
     from subslope.physics.grid import pixel_grid
     from subslope.physics.instrument import noise_sigma_map
     from subslope.render.pipeline import render
-    from subslope.stats.signal import delta_chi2, refit_delta_chi2
 
     def image(macro, subhalos):
         out = render(
@@ -136,18 +178,27 @@ def _image_budget(inp: dict[str, Any], mask_factor: float) -> tuple[float, float
     without = image(macro, None)
     diff = (image(macro, inp["subhalos"]) - without).numpy()
     sigma = noise_sigma_map(without, inp["instrument"]).numpy()
-    npix = diff.shape[-1]
-    x, y = pixel_grid(npix, inp["instrument"].pixel_scale, dtype=torch.float64)
+    x, y = pixel_grid(diff.shape[-1], inp["instrument"].pixel_scale, dtype=torch.float64)
     r2 = (x.numpy() - macro["lens_x"][0]) ** 2 + (y.numpy() - macro["lens_y"][0]) ** 2
     mask = r2 <= (mask_factor * macro["theta_e"][0]) ** 2
-    w = _noise_weight(inp["instrument"])
-    # the scale of a column does not change its span: differences, not derivatives
-    jac = [(image(plus, None) - image(minus, None)).numpy() for _, plus, minus in _perturbed(macro)]
-    fixed = delta_chi2(diff, sigma, mask, w)
-    refit = refit_delta_chi2(
-        diff, np.stack(jac) if jac else np.zeros((0, *diff.shape)), sigma, mask, w
+    return BudgetImage(
+        image, macro, inp["subhalos"], diff, sigma, mask, _noise_weight(inp["instrument"])
     )
-    return fixed, refit
+
+
+def _image_budget(inp: dict[str, Any], mask_factor: float) -> tuple[float, float]:
+    """``(dchi2_fixed, dchi2_refit)`` of the one image of the stored inputs ``inp``."""
+    from subslope.stats.signal import delta_chi2, refit_delta_chi2
+
+    b = budget_image(inp, mask_factor)
+    # the scale of a column does not change its span: differences, not derivatives
+    jac = [
+        (b.render(plus, None) - b.render(minus, None)).numpy()
+        for _, plus, minus in _perturbed(b.macro)
+    ]
+    fixed = delta_chi2(b.diff, b.sigma, b.mask, b.w)
+    stacked = np.stack(jac) if jac else np.zeros((0, *b.diff.shape))
+    return fixed, refit_delta_chi2(b.diff, stacked, b.sigma, b.mask, b.w)
 
 
 def budget_rows(
