@@ -10,8 +10,11 @@ import pytest
 from tests.conftest import REPO_ROOT
 
 DOCS = REPO_ROOT / "docs"
-#: A short (7–12 digits) or full commit hash: hexadecimal with a digit and a letter.
-HASH = re.compile(r"\b(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])(?:[0-9a-f]{7,12}|[0-9a-f]{40})\b")
+#: A commit hash, short or full, or a config hash: 7–40 hexadecimal digits with a digit
+#: and a letter (a SHA-256 sum, 64 digits, is data, not provenance).
+HASH = re.compile(
+    r"(?<![.\w])(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b(?![-+]\d)"
+)  # not the digits of a number such as 3.516773369438426e-47
 
 
 def _reference_documents():
@@ -31,7 +34,10 @@ def test_no_commit_hash_outside_the_notebook(path):
 
 def test_hash_pattern_finds_commits_and_spares_config_hashes():
     assert HASH.findall("at 0a6ce62, full 14e2df2") == ["0a6ce62", "14e2df2"]
-    assert not HASH.findall("config hash `811bc79c399275f3`, sha256 of ... deadbeef")
+    assert HASH.findall("config hash `811bc79c399275f3`") == ["811bc79c399275f3"]
+    assert not HASH.findall(
+        "a sha256 " + "ab12" * 16 + ", a word deadbeef, p = 3.516773369438426e-47"
+    )
 
 
 def test_readme_is_a_front_page():

@@ -222,9 +222,8 @@ def results_page(results, *, command: str | None = None) -> str:
     record: dict[str, Any] = {}
     if (results / "run.json").is_file():
         record = json.loads((results / "run.json").read_text(encoding="utf-8"))
-    config_line, config_hash = (
-        next((ln.split("`")[1] for ln in summary.splitlines() if ln.startswith(start)), "")
-        for start in ("- config file", "- config hash")
+    config_line = next(
+        (ln.split("`")[1] for ln in summary.splitlines() if ln.startswith("- config file")), ""
     )
     machine = record.get("machine") or {}
     when = record.get("finished_utc") or datetime.fromtimestamp(
@@ -238,7 +237,12 @@ def results_page(results, *, command: str | None = None) -> str:
         else "not recorded (the campaign predates run.json)"
     )
     body = summary.split("\n", 1)[1] if "\n" in summary else ""
-    body = "\n".join("#" + ln if ln.startswith("## ") else ln for ln in body.splitlines())
+    # hashes belong to the dated records of the notebook, not to this page
+    body = "\n".join(
+        "#" + ln if ln.startswith("## ") else ln
+        for ln in body.splitlines()
+        if not ln.startswith("- config hash")
+    )
     lines = [
         "# Results of the current campaign",
         "",
@@ -248,7 +252,7 @@ def results_page(results, *, command: str | None = None) -> str:
         "| | |",
         "|---|---|",
         f"| command | `{command or _command(record, config_line)}` |",
-        f"| config | `{config_line or '?'}` (hash `{config_hash or '?'}`) |",
+        f"| config | `{config_line or '?'}` |",
         f"| machine | {machine_text} |",
         f"| finished (UTC) | {when} |",
         f"| subslope | {record.get('subslope', '?')} |",
