@@ -37,7 +37,7 @@ def _campaign(root, hst_mle=1.5, overconfident="False"):
     (root / "coverage.csv").write_text(f"n_images,overconfident\n1,False\n13,{overconfident}\n")
     (root / "trend.csv").write_text("rho,p_value,n\n0.9,1e-10,400\n")
     (root / "run.json").write_text(
-        json.dumps({"cores": 2, "machine": {"cpu": "Test CPU", "cores": 2, "torch": "x"}})
+        json.dumps({"machine": {"cpu": "Test CPU", "cores": 2, "torch": "x"}})
     )
     return root
 

@@ -203,9 +203,8 @@ MEANING = """\
 
 def _command(record: dict[str, Any], config_line: str) -> str:
     files = record.get("config_files") or [f.strip() for f in config_line.split(",") if f]
-    cores = record.get("cores") or 2
     extra = "".join(f" --configfile {f}" for f in files if f != "config/config.yaml")
-    return f"snakemake --cores {cores}{extra}"
+    return f"snakemake --cores 2{extra}"
 
 
 def results_page(results, *, command: str | None = None) -> str:

@@ -274,33 +274,23 @@ SUMMARY_COLUMNS = (
     "refit_p16",
     "refit_p50",
     "refit_p84",
+    "stack_fixed",
     "stack_refit",
 )
-
-
-def _label(scene: str, multiplier) -> str:
-    return scene if multiplier in ("", None) or _isnan(multiplier) else f"{scene} a={multiplier:g}"
-
-
-def _isnan(value) -> bool:
-    try:
-        return math.isnan(float(value))
-    except (TypeError, ValueError):
-        return False
 
 
 def summarize_signal_budget(
     csv_paths: Sequence, out_csv, fig_stem, *, stack_size: int, run_name: str
 ):
     """The table of the signal budget, one row per scene (and multiplier): the 16/50/84%
-    of Δχ² per image with the smooth model fixed and refitted, and ``stack_refit``, the
-    refitted Δχ² of a stack of ``stack_size`` images (``stack_size`` × the median, Δχ²
-    adding over independent images); and its figure. Returns the table (pandas)."""
+    of Δχ² per image with the smooth model fixed and refitted, and ``stack_fixed`` /
+    ``stack_refit``, the Δχ² of a stack of ``stack_size`` images (``stack_size`` × the
+    median, Δχ² adding over independent images); and its figure. Returns the table (pandas)."""
     import pandas as pd
 
     frames = [pd.read_csv(p) for p in csv_paths]
     data = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=BUDGET_COLUMNS)
-    rows = []
+    rows, labels, fixed_sets, refit_sets = [], [], [], []
     for (scene, mult), group in data.groupby(["scene", data["multiplier"].fillna(-1)], sort=False):
         fixed, refit = group["dchi2_fixed"].to_numpy(), group["dchi2_refit"].to_numpy()
         q = np.percentile
@@ -315,27 +305,22 @@ def summarize_signal_budget(
                 "refit_p16": float(q(refit, 16)),
                 "refit_p50": float(q(refit, 50)),
                 "refit_p84": float(q(refit, 84)),
+                "stack_fixed": float(stack_size * np.median(fixed)),
                 "stack_refit": float(stack_size * np.median(refit)),
             }
         )
+        labels.append(scene if mult == -1 else f"{scene} a={float(mult):g}")
+        fixed_sets.append(fixed)
+        refit_sets.append(refit)
     table = pd.DataFrame(rows, columns=list(SUMMARY_COLUMNS))
     write_csv(out_csv, table.to_dict("records"), list(SUMMARY_COLUMNS))
     from subslope.figures.save import save_figure
     from subslope.figures.signal import signal_budget_figure
 
-    labels = [_label(r["scene"], r["multiplier"]) for r in rows]
-    key = data["multiplier"].fillna(-1)
-    groups = [
-        data[
-            (data["scene"] == r["scene"])
-            & (key == (-1 if r["multiplier"] == "" else r["multiplier"]))
-        ]
-        for r in rows
-    ]
     fig = signal_budget_figure(
         labels,
-        [g["dchi2_fixed"].to_numpy() for g in groups],
-        [g["dchi2_refit"].to_numpy() for g in groups],
+        fixed_sets,
+        refit_sets,
         run_name=run_name,
         source="results/signal_budget/signal_budget.csv",
     )
@@ -367,8 +352,6 @@ def response_table(signal_csv, visibility_csv=None, halo_free_csv=None):
     import pandas as pd
 
     signal = pd.read_csv(signal_csv)
-    n = signal["stack_refit"] / signal["refit_p50"].where(signal["refit_p50"] > 0)
-    signal["stack_fixed"] = (n * signal["fixed_p50"]).fillna(0.0)
     rows = []
     if visibility_csv:
         vis = pd.read_csv(visibility_csv)

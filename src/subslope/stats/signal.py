@@ -22,14 +22,14 @@ at most the fixed-model one. With the source morphology held fixed both are uppe
 of what an analysis with a free source could detect.
 
 Δχ² ≈ 1 is invisible, ≳ 25 an individual detection for a perfect model; over independent
-images Δχ² adds (:func:`stack_sums`).
+images Δχ² adds.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["delta_chi2", "refit_delta_chi2", "stack_sums", "whiten"]
+__all__ = ["delta_chi2", "refit_delta_chi2", "whiten"]
 
 
 def _axis_transfer(n: int, w: float) -> np.ndarray:
@@ -79,13 +79,3 @@ def refit_delta_chi2(diff, jacobian, sigma, mask, w: float = 0.0) -> float:
     scale[scale == 0] = 1.0
     coef, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
     return float(np.sum((b - (a / scale) @ coef) ** 2))
-
-
-def stack_sums(values, n: int, set_id=None) -> np.ndarray:
-    """Δχ² of stacks of ``n`` independent images: the sum over each set's first ``n``
-    images (``set_id``: the set of each image; None: consecutive groups of ``n``). Sets
-    with fewer than ``n`` images are left out."""
-    v = np.asarray(values, dtype=np.float64)
-    ids = np.arange(v.size) // n if set_id is None else np.asarray(set_id)
-    out = [v[ids == s][:n].sum() for s in dict.fromkeys(ids.tolist()) if np.sum(ids == s) >= n]
-    return np.asarray(out, dtype=np.float64)
