@@ -65,3 +65,24 @@ def test_cli_refuses_a_folder_without_a_summary(tmp_path, capsys):
     assert f"{tmp_path / 'summary.md'} not found" in capsys.readouterr().err
     with pytest.raises(ResultsPageError):
         results_page(tmp_path)
+
+
+def test_seeds_and_reference_curve_reach_the_page(tmp_path):
+    root = tmp_path / "r"
+    _campaign(root)
+    (root / "measure_cdm_grid").mkdir()
+    (root / "measure_cdm_grid" / "cdm_grid.csv").write_text(
+        "scene,multiplier,n_sets,n_images,median,lo,hi,reference,distance\n"
+        "nfw,1.0,40,13,1.53,1.1,1.64,1.71,-0.18\n"
+    )
+    assert not any("trainings" in v for v in verdicts(root))
+    (root / "seeds").mkdir()
+    (root / "seeds" / "seeds.csv").write_text(
+        "training,seed,hst_gamma_mle,hst_lower,hst_upper,hst_open\n"
+        "reduced,derived,1.41,1.10,1.72,lower\nreduced_seed1,1,1.79,1.49,2.15,no\n"
+    )
+    (root / "seeds" / "seeds.md").write_text("| training |\n|---|\n| reduced |\n")
+    found = verdicts(root)
+    assert any("nfw a = 1 1.53 against 1.71" in v for v in found)
+    assert any("spans 1.41–1.79; 1 of 2 intervals are open" in v for v in found)
+    assert "## Training seeds" in results_page(root)

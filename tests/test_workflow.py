@@ -62,6 +62,7 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         "train_estimator",
         "plot_training_curves",
         "summarize_coverage",
+        "effective_slope",
         "measure_cdm_grid",
         "null_tests",
         "cdm_visibility",
@@ -225,7 +226,7 @@ STAGE_RULES = {
     "train": {"train_estimator"},
     "evaluate": {"evaluate_profiles", "evaluate_cdm_profiles"},
     "calibrate": {"calibrate_threshold", "summarize_coverage"},
-    "cdm_grid": {"measure_cdm_grid"},
+    "cdm_grid": {"effective_slope", "measure_cdm_grid"},
     "null_tests": {
         "null_tests",
         "halo_free_profiles",
@@ -499,6 +500,13 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     assert cal["n_images"].tolist() == [1, 2]
     grid = pd.read_csv(results / "measure_cdm_grid" / "cdm_grid.csv")
     assert set(grid["scene"]) == {"nfw", "tnfw"} and set(grid["multiplier"]) == {1.0}
+    slopes = pd.read_csv(results / "measure_cdm_grid" / "effective_slope.csv")
+    assert len(slopes) == 4 and set(slopes["scene"]) == {"nfw", "tnfw"}  # 2 sets per scene
+    assert np.all((slopes["gamma_eff"] > 1.0) & (slopes["gamma_eff"] < 3.0))
+    for scene, group in slopes.groupby("scene"):
+        row = grid[grid["scene"] == scene].iloc[0]
+        assert row["reference"] == pytest.approx(group["gamma_eff"].median())
+        assert row["distance"] == pytest.approx(row["median"] - row["reference"])
     hst = pd.read_csv(results / "analyze_hst" / "intervals.csv")
     assert len(hst) == 14 and hst["system"].iloc[-1] == "combined" and hst["n_images"].iloc[-1] == 2
     assert np.all(np.abs(hst["lens_x"].iloc[:13]) < 0.4) and np.all(
@@ -563,6 +571,7 @@ def test_real_run_tiny_reruns(tiny_run, campaign, data_dir):
     assert _job_stats(proc.stdout) == {
         "simulate_cdm_shard": 2,
         "evaluate_cdm_profiles": 2,
+        "effective_slope": 1,  # one cheap job over every CDM shard
         "measure_cdm_grid": 1,
         "subhalo_free_profiles": 2,  # the new multiplier's sets without their subhalos
         "cdm_visibility": 1,

@@ -1,10 +1,37 @@
 # Stage: cdm_grid. Stack MLEs of the simulated CDM sets per concentration multiplier,
-# their bands and figure 4 (subslope.stages.cdm_grid).
+# their bands, the sets' effective subhalo slopes (the reference curve) and figure 4
+# (subslope.stages.cdm_grid).
+
+
+rule effective_slope:
+    input:
+        shards=[job["path"] for job in SHARD_JOBS if job["scene"] in CDM_SCENES],
+    output:
+        csv=update("results/measure_cdm_grid/effective_slope.csv"),
+    log:
+        "logs/effective_slope.log",
+    benchmark:
+        "results/benchmarks/effective_slope.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    params:
+        # [scene, multiplier, shard file] of every CDM shard
+        groups=[
+            [job["scene"], job["multiplier"], job["path"]]
+            for job in SHARD_JOBS
+            if job["scene"] in CDM_SCENES
+        ],
+    script:
+        "../scripts/effective_slope.py"
 
 
 rule measure_cdm_grid:
     input:
         profiles=cdm_inputs(),
+        effective_slopes="results/measure_cdm_grid/effective_slope.csv",
     output:
         npz=update("results/measure_cdm_grid/cdm_grid.npz"),
         csv=update("results/measure_cdm_grid/cdm_grid.csv"),
@@ -30,7 +57,7 @@ rule measure_cdm_grid:
         groups=[
             [job["scene"], job["multiplier"], profile_path(job)]
             for job in SHARD_JOBS
-            if job["scene"] in (CDM["nfw_scene"], CDM["tnfw_scene"])
+            if job["scene"] in CDM_SCENES
         ],
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],

@@ -186,6 +186,7 @@ for _name, _on in STAGE_ON.items():
 # Evaluation sets: which shards get profiles, and the calibration stack sizes.
 CAL = config["calibration"]
 CDM = config["cdm"]
+CDM_SCENES = [s for s in (CDM["nfw_scene"], CDM["tnfw_scene"]) if s]
 RUN = config["run_name"]
 CAL_N = sorted(CAL["n_images"])
 GRID = config["inference"]["gamma_grid"]
@@ -234,8 +235,7 @@ def calibration_inputs(wildcards):
 
 
 def cdm_inputs():
-    scenes = [CDM["nfw_scene"]] + ([CDM["tnfw_scene"]] if CDM["tnfw_scene"] else [])
-    return [profile_path(job) for job in SHARD_JOBS if job["scene"] in scenes]
+    return [profile_path(job) for job in SHARD_JOBS if job["scene"] in CDM_SCENES]
 
 
 def derived_seed(section):
@@ -300,7 +300,10 @@ def benchmark_files():
         ]
         out["calibrate"].append("results/benchmarks/summarize_coverage.tsv")
     if STAGE_ON["cdm_grid"]:
-        out["cdm_grid"] = ["results/benchmarks/measure_cdm_grid.tsv"]
+        out["cdm_grid"] = [
+            "results/benchmarks/effective_slope.tsv",
+            "results/benchmarks/measure_cdm_grid.tsv",
+        ]
     if STAGE_ON["signal_budget"]:
         out["signal_budget"] = [
             budget_path(job)

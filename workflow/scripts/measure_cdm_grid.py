@@ -20,6 +20,7 @@ try:
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
         band=tuple(snakemake.params.band),
+        effective_slopes_csv=snakemake.input.effective_slopes,
     )
     logging.info("concentration grid:\n%s", table.to_string())
 except Exception:

@@ -118,6 +118,38 @@ def _cdm(results: Path) -> list[str]:
     return out
 
 
+def _reference(results: Path) -> list[str]:
+    rows = [
+        r
+        for r in _rows(results, "measure_cdm_grid/cdm_grid.csv")
+        if r.get("reference") and math.isfinite(_num(r["reference"]))
+    ]
+    if not rows:
+        return []
+    parts = "; ".join(
+        f"{r['scene']} a = {_num(r['multiplier']):g} {_num(r['median']):.2f} against "
+        f"{_num(r['reference']):.2f}"
+        for r in rows
+    )
+    return [
+        "Figure 4's readings against the effective slope of the sets' subhalos (what each "
+        f"point would read if the estimator read the slope the images resolve): {parts}."
+    ]
+
+
+def _seeds(results: Path) -> list[str]:
+    rows = _rows(results, "seeds/seeds.csv")
+    if len(rows) < 2:
+        return []
+    g = [_num(r["hst_gamma_mle"]) for r in rows]
+    n_open = sum(r["hst_open"] != "no" for r in rows)
+    return [
+        f"Over {len(rows)} trainings of the estimator (`subslope seeds`) the combined HST "
+        f"γ_MLE spans {min(g):.2f}–{max(g):.2f}; {n_open} of {len(rows)} intervals are open "
+        "at a prior edge."
+    ]
+
+
 def _signal(results: Path) -> list[str]:
     rows = [
         r for r in _rows(results, "signal_budget/signal_budget.csv") if _num(r["fixed_p50"]) > 0
@@ -177,7 +209,7 @@ def _domain(results: Path) -> list[str]:
 def verdicts(results) -> list[str]:
     """One sentence per part of the campaign, computed from the CSVs of ``results``."""
     results = Path(results)
-    parts = (_in_distribution, _signal, _cdm, _hst, _domain)
+    parts = (_in_distribution, _signal, _cdm, _reference, _hst, _seeds, _domain)
     return [line for part in parts for line in part(results)]
 
 
@@ -263,11 +295,24 @@ def results_page(results, *, command: str | None = None) -> str:
         "## What these numbers can and cannot be taken to mean",
         "",
         MEANING,
+        *_seeds_section(results),
         "## The campaign's summary (`results/summary.md`)",
         body.rstrip(),
         "",
     ]
     return "\n".join(lines)
+
+
+def _seeds_section(results: Path) -> list[str]:
+    path = results / "seeds" / "seeds.md"
+    if not path.is_file():
+        return []
+    return [
+        "## Training seeds (`subslope seeds`, `results/seeds/seeds.md`)",
+        "",
+        path.read_text(encoding="utf-8").rstrip(),
+        "",
+    ]
 
 
 def write_results_page(results, out, *, command: str | None = None) -> Path:

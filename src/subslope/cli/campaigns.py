@@ -3,6 +3,9 @@
 systematics [--config C ...] [--cores N] [--only NAME ...] [--table-only] [-- SNAKEMAKE ARGS]
     Run the campaign under every variant of systematics.variants (each in its own folder,
     sharing the data and the shard cache) and write the systematics table and figure.
+seeds [--config C ...] [--seeds K ...] [--cores N] [--table-only] [-- SNAKEMAKE ARGS]
+    Train the campaign's estimator again with other seeds (each a campaign in its own
+    folder, sharing the data and the shard cache) and write the spread of the readings.
 cache du|prune [--config C ...]
     What the shard cache holds and what uses it; remove what no config uses.
 cluster-jobs [--total] -- SNAKEMAKE ARGS
@@ -28,6 +31,7 @@ __all__ = ["add_campaign_commands"]
 def add_campaign_commands(commands) -> None:
     """Add the commands of this module to the ``subslope`` sub-parsers ``commands``."""
     _add_systematics_command(commands)
+    _add_seeds_command(commands)
     _add_cache_command(commands)
     _add_cluster_jobs_command(commands)
     _add_compare_runs_command(commands)
@@ -86,6 +90,60 @@ def _systematics(args: argparse.Namespace) -> int:
         return 1
     print(f"wrote {section['table']}/systematics.csv, .md and figures/systematics.*")
     return 0
+
+
+def _seeds(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from subslope.campaigns.seeds import seed_variants, seeds_table
+    from subslope.campaigns.systematics import SystematicsError, run_variant
+    from subslope.config import ConfigError, read_files
+
+    files = args.config or ["config/config.yaml"]
+    out = Path(args.folder)
+    try:
+        raw = read_files(files)
+        variants = seed_variants(raw, args.seeds, root=Path.cwd(), folder=out, file=files[-1])
+    except (ConfigError, SystematicsError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    extra = [a for a in args.snakemake_args if a != "--"]
+    for variant in variants if not args.table_only else []:
+        try:
+            run_variant(variant, snakefile=Path(args.snakefile), cores=args.cores, extra=extra)
+        except subprocess.CalledProcessError as exc:
+            print(
+                f"error: the campaign of {variant.name} failed (exit {exc.returncode}); its "
+                f"logs are in {variant.folder}/logs",
+                file=sys.stderr,
+            )
+            return 1
+    try:
+        _, text = seeds_table(raw, args.results, variants, out)
+    except SystematicsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(text, end="")
+    print(f"wrote {out}/seeds.csv and seeds.md")
+    return 0
+
+
+def _add_seeds_command(commands) -> None:
+    p = commands.add_parser(
+        "seeds", help="train the estimator again with other seeds; the spread of its readings"
+    )
+    p.add_argument(
+        "--seeds", nargs="+", type=int, default=[1, 2],
+        help="training seeds besides the campaign's own (default 1 2: three trainings)",
+    )  # fmt: skip
+    p.add_argument(
+        "--results", default="results", help="the campaign's own finished results/ folder"
+    )
+    p.add_argument(
+        "--folder", default="results/seeds", help="where the seeds' campaigns and table go"
+    )
+    _add_campaign_run_arguments(p, "seed")
+    p.set_defaults(func=_seeds)
 
 
 def _cache(args: argparse.Namespace) -> int:
@@ -204,21 +262,26 @@ def _add_systematics_command(commands) -> None:
     p = commands.add_parser(
         "systematics", help="the campaign under every simulator variant, and their table"
     )
+    p.add_argument("--only", nargs="+", default=None, help="run_names of the variants to run")
+    _add_campaign_run_arguments(p, "variant")
+    p.set_defaults(func=_systematics)
+
+
+def _add_campaign_run_arguments(p, what: str) -> None:
+    """The arguments of a command that runs campaigns in folders of their own."""
     p.add_argument(
         "--config", nargs="+", default=None,
         help="campaign config file(s), read as --configfile (default config/config.yaml)",
     )  # fmt: skip
-    p.add_argument("--cores", type=int, default=2, help="cores of each variant's Snakemake")
-    p.add_argument("--only", nargs="+", default=None, help="run_names of the variants to run")
+    p.add_argument("--cores", type=int, default=2, help=f"cores of each {what}'s Snakemake")
     p.add_argument(
-        "--table-only", action="store_true", help="write the table from finished variants"
+        "--table-only", action="store_true", help=f"write the table from finished {what}s"
     )
     p.add_argument("--snakefile", default="Snakefile", help="the workflow (default ./Snakefile)")
     p.add_argument(
         "snakemake_args", nargs=argparse.REMAINDER,
         help="after --: more Snakemake arguments, e.g. -- --profile profiles/slurm",
     )  # fmt: skip
-    p.set_defaults(func=_systematics)
 
 
 def _compare_runs(args: argparse.Namespace) -> int:

@@ -69,8 +69,15 @@ def concentration_grid(
     cdm: float = 1.0,
     hst: tuple[float, float, float] | None = None,
     percentiles: tuple[float, float, float] = (16, 50, 84),
+    reference_nfw=None,
+    reference_tnfw=None,
 ) -> Figure:
     """Fig. 4: stack MLEs against the concentration multiplier ``a`` (log axis).
+
+    ``reference_nfw``/``reference_tnfw``: optional ``(3, n_a)`` rows (lo, median, hi) of
+    the sets' effective subhalo slopes (:mod:`subslope.physics.effective_slope`), drawn as
+    a line with a band: what each point would read if the estimator read the slope the
+    images resolve.
 
     ``mles_nfw``/``mles_tnfw``: ``(n_a, n_sets)`` MLEs of the ``n_sets`` stacks of
     ``n_images`` at each multiplier (NaN entries are ignored). Points: median; bars: the
@@ -86,6 +93,17 @@ def concentration_grid(
     series = [("NFW subhalos", mles_nfw, C_NFW, "o", 1 / 1.03)]
     if mles_tnfw is not None:
         series.append(("tNFW subhalos", mles_tnfw, C_TNFW, "s", 1.03))
+    for label, ref, color in (("NFW", reference_nfw, C_NFW), ("tNFW", reference_tnfw, C_TNFW)):
+        if ref is None:
+            continue
+        ref = np.asarray(ref, dtype=np.float64)
+        if ref.shape != (3, a.size):
+            raise ValueError(f"{label} reference must have shape (3, {a.size}), got {ref.shape}")
+        ax.fill_between(a, ref[0], ref[2], color=color, alpha=0.12, lw=0)
+        ax.plot(
+            a, ref[1], color=color, ls="--", lw=1.2, marker="_", ms=14,
+            label=f"{label} effective slope of the sets (median, 16–84%)",
+        )  # fmt: skip
     for label, m, color, marker, shift in series:
         m = np.asarray(m, dtype=np.float64)
         if m.ndim != 2 or m.shape[0] != a.size:

@@ -326,7 +326,26 @@ def _cdm_section(
     return [
         "Median and 16–84% range of the stack γ_MLE of simulated CDM sets at a = 1:\n",
         _md_table(rows, columns) if rows else "no a = 1 sets\n",
+        *_reference_lines(cdm),
         *_visibility_lines(folder, visibility_csv),
+    ]
+
+
+def _reference_lines(cdm) -> list[str]:
+    """Every multiplier's reading against the sets' effective slope (figure 4's curves)."""
+    if "reference" not in cdm or not np.isfinite(cdm["reference"]).any():
+        return []
+    columns = ["scene", "multiplier", "median", "lo", "hi", "reference", "distance"]
+    far = cdm.loc[cdm["distance"].abs().idxmax()]
+    return [
+        "\nAt every multiplier, the stack γ_MLE (median, 16–84%) against `reference`, the "
+        "median over the sets of their subhalos' effective slope (the slope of each "
+        'subhalo\'s deflection between 0.04" and 0.4", weighted by its squared '
+        "deflection; docs/physics.md), and `distance` = median − reference:\n",
+        _md_table(cdm[columns].to_dict("records"), columns),
+        f"\nThe readings lie {cdm['distance'].abs().min():.2f}–{cdm['distance'].abs().max():.2f} "
+        f"from the reference (farthest: {far['scene']} a = {float(far['multiplier']):g}, "
+        f"{float(far['distance']):+.2f}).\n",
     ]
 
 

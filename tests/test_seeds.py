@@ -1,0 +1,97 @@
+"""Training seeds (`subslope seeds`): each seed a campaign of its own on the campaign's
+shards, and the table of what every training reads."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from conftest import REPO_ROOT, shared_data_dir
+
+from subslope import config as C
+from subslope.campaigns.seeds import (
+    ESTIMATOR_ONLY,
+    SEEDS_COLUMNS,
+    seed_variants,
+    seeds_markdown,
+)
+from subslope.campaigns.systematics import SystematicsError
+from subslope.plan import plan_problems
+
+CONFIG = REPO_ROOT / "config" / "config.yaml"
+
+
+def test_a_seed_is_the_campaign_with_another_training_seed(tmp_path):
+    campaign = C.read_files([CONFIG])
+    variants = seed_variants(campaign, [1, 2, 1], root=tmp_path, folder=tmp_path / "s", file=CONFIG)
+    assert [v.name for v in variants] == ["reduced_seed1", "reduced_seed2"]
+    for seed, v in zip((1, 2), variants):
+        cfg = C.validate(v.config)
+        assert cfg["training"]["seed"] == seed and cfg["run_name"] == v.name
+        assert v.folder == tmp_path / "s" / v.name
+        # the campaign's shard cache and data, everything that makes shards unchanged
+        assert cfg["simulation"]["shard_cache"] == str(tmp_path / ".cache" / "shard_cache")
+        assert cfg["data"]["resources_dir"] == str(tmp_path / "resources")
+        reference = C.validate(campaign)
+        assert cfg["scenes"] == reference["scenes"] and cfg["seed"] == reference["seed"]
+        for stage, on in ESTIMATOR_ONLY["stages"].items():
+            assert cfg["stages"][stage] is on
+        assert cfg["stages"]["train"] and cfg["stages"]["hst"] and cfg["stages"]["calibrate"]
+        assert plan_problems(cfg) == []
+
+
+@pytest.mark.parametrize(
+    "change, seeds, message",
+    [
+        ({"simulation": {"shard_cache": None}}, [1], "shard_cache is null"),
+        ({}, [-1], "outside 0 .. 2\\^32-1"),
+        ({"training": {"max_epochs": 0}}, [1], "training.max_epochs"),
+    ],
+)
+def test_a_seed_that_cannot_run_is_refused_before_any(tmp_path, change, seeds, message):
+    campaign = C.deep_merge(C.read_files([CONFIG]), change)
+    with pytest.raises((SystematicsError, C.ConfigError), match=message):
+        seed_variants(campaign, seeds, root=tmp_path, folder=tmp_path, file=CONFIG)
+
+
+def test_the_spread_sentence_counts_open_intervals():
+    rows = [
+        {"training": "a", "seed": "derived", "hst_gamma_mle": 1.4, "hst_lower": 1.1,
+         "hst_upper": 1.7, "hst_open": "lower", "nfw_median": 1.5, "tnfw_median": 1.3,
+         "spearman_rho": 0.9, "n_max": 13, "coverage_nmax": 0.7},
+        {"training": "b", "seed": 1, "hst_gamma_mle": 1.8, "hst_lower": 1.5,
+         "hst_upper": 2.1, "hst_open": "no", "nfw_median": 1.6, "tnfw_median": 1.4,
+         "spearman_rho": 0.85, "n_max": 13, "coverage_nmax": 0.69},
+    ]  # fmt: skip
+    text = seeds_markdown(rows)
+    assert text.count("\n| ") == 2  # two rows below the header
+    assert "spans 1.40–1.80 (0.40, standard deviation 0.28); 1 of 2 intervals are open" in text
+
+
+def test_one_command_trains_a_seed_on_the_campaigns_shards(tiny_run, tmp_path):
+    root = tiny_run.parent
+    exe = Path(sys.executable).with_name("subslope")
+    command = [str(exe), "seeds", "--config", "config/tiny.yaml", "--seeds", "3",
+               "--folder", str(tmp_path), "--cores", "2"]  # fmt: skip
+    env = dict(os.environ, OMP_NUM_THREADS="1", SUBSLOPE_DATA_MIRROR=str(shared_data_dir()))
+    proc = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
+    table = pd.read_csv(tmp_path / "seeds.csv")
+    assert list(table.columns) == list(SEEDS_COLUMNS)
+    assert table["training"].tolist() == ["tiny", "tiny_seed3"]
+    assert table["seed"].astype(str).tolist() == ["derived", "3"]
+    own = pd.read_csv(tiny_run / "hst_result.csv").iloc[0]
+    assert table["hst_gamma_mle"].iloc[0] == pytest.approx(float(own["gamma_mle"]))
+    seed_results = tmp_path / "tiny_seed3" / "results"
+    other = pd.read_csv(seed_results / "hst_result.csv").iloc[0]
+    assert table["hst_gamma_mle"].iloc[1] == pytest.approx(float(other["gamma_mle"]))
+    assert "trainings the combined HST γ_MLE spans" in (tmp_path / "seeds.md").read_text()
+    # every shard came from the campaign's cache; the estimator-free stages stayed off
+    logs = list((tmp_path / "tiny_seed3" / "logs" / "simulate_shard").rglob("*.log"))
+    assert logs and all("taken from the cache" in p.read_text() for p in logs)
+    assert not (seed_results / "signal_budget").exists()
+    assert not (seed_results / "check_domain").exists()
