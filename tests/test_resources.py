@@ -16,8 +16,13 @@ def _entry(rel: str, content: bytes, url: str | None = None) -> res.RegistryEntr
 
 
 def _leftovers(folder: Path) -> list[Path]:
-    """Temporary files (.part, .download) anywhere under folder."""
-    return [p for p in folder.rglob("*") if p.name.startswith(".")]
+    """Temporary files (.part, .download) anywhere under folder (the records of fetched
+    files, res.FETCHED_RECORDS, are not temporary)."""
+    return [
+        p
+        for p in folder.rglob("*")
+        if p.name.startswith(".") and res.FETCHED_RECORDS not in p.relative_to(folder).parts
+    ]
 
 
 def test_registry_lists_the_real_data():
@@ -163,3 +168,22 @@ def test_cli_fetch_data(data_dir, tmp_path, capsys):
         == 1
     )
     assert "not found" in capsys.readouterr().err
+
+
+def test_a_fetched_file_deleted_later_is_restored_with_its_stamp(data_dir, tmp_path):
+    from subslope.io.resources import FETCHED_MTIME, FETCHED_RECORDS, restore_deleted
+
+    entries = [e for e in res.load_registry() if e.path.startswith("psf/")]
+    [psf] = res.fetch(tmp_path, mirror=data_dir, entries=entries)
+    assert (tmp_path / FETCHED_RECORDS / "psf" / "emp_psf_f814w.fits.sha256").is_file()
+    assert restore_deleted(tmp_path, mirror=data_dir) == []  # nothing missing
+    psf.unlink()
+    assert restore_deleted(tmp_path, mirror=tmp_path / "nowhere") == []  # left to the job
+    assert restore_deleted(tmp_path, mirror=data_dir) == [psf]
+    assert psf.stat().st_mtime == FETCHED_MTIME and res.sha256sum(psf) == entries[0].sha256
+    # a file never fetched here (no record) is not fetched by the restore
+    assert not (tmp_path / "hst").exists()
+    # a record of other bytes (the registry changed since): the new file is the job's
+    psf.unlink()
+    (tmp_path / FETCHED_RECORDS / "psf" / "emp_psf_f814w.fits.sha256").write_text("0" * 64)
+    assert restore_deleted(tmp_path, mirror=data_dir) == []

@@ -38,6 +38,7 @@ def test_a_seed_is_the_campaign_with_another_training_seed(tmp_path):
         assert cfg["data"]["resources_dir"] == str(tmp_path / "resources")
         reference = C.validate(campaign)
         assert cfg["scenes"] == reference["scenes"] and cfg["seed"] == reference["seed"]
+        assert cfg["simulation"]["scenes"] == reference["simulation"]["scenes"]  # no common
         for stage, on in ESTIMATOR_ONLY["stages"].items():
             assert cfg["stages"][stage] is on
         assert cfg["stages"]["train"] and cfg["stages"]["hst"] and cfg["stages"]["calibrate"]

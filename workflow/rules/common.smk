@@ -38,6 +38,12 @@ if workflow.is_main_process:
         logger.warning(f"{_stale}: its last job did not finish; that job runs again")
     for _tmp in subslope.io.atomic.remove_stale_temporaries_under("results"):
         logger.info(f"removed {_tmp}, left by a killed job")
+    # A data file deleted after it was fetched is put back here, not by fetch_data, so
+    # that none of its readers runs again (subslope.io.resources.restore_deleted).
+    for _data in subslope.io.resources.restore_deleted(
+        config["data"]["resources_dir"], mirror=config["data"]["mirror"]
+    ):
+        logger.info(f"{_data} was deleted; restored from the data mirror")
 
 
 # Before the first job, once the executor is known: a device this machine cannot serve
@@ -73,11 +79,20 @@ def resource_files(prefix):
     ]
 
 
+def data_inputs(prefix):
+    """resource_files(prefix) as inputs of the rules that read them: ancient, so that
+    fetching a file again (deleted, or rule fetch_data changed) reruns none of its
+    readers. The files are identified by their registry checksums, which fetch_data
+    verifies; the registry is part of every shard's cache key."""
+    return [ancient(f) for f in resource_files(prefix)]
+
+
 def cosmos_files():
-    """The registered files of the configured COSMOS folders (simulation.sources.folder)."""
+    """The registered files of the configured COSMOS folders (simulation.sources.folder),
+    as data_inputs."""
     folder = config["simulation"]["sources"]["folder"]
     names = folder if isinstance(folder, list) else [folder]
-    return [f for name in names for f in resource_files(os.path.join(name, ""))]
+    return [f for name in names for f in data_inputs(os.path.join(name, ""))]
 
 
 def cosmos_dirs(files):

@@ -6,8 +6,8 @@
 
 rule fit_lens_light:
     input:
-        hst=resource_files("hst/"),
-        psf=resource_files("psf/"),
+        hst=data_inputs("hst/"),
+        psf=data_inputs("psf/"),
     output:
         csv=update("results/fit_lens_light/lens_light_fits.csv"),
         prior=update("results/fit_lens_light/lens_light_prior.yaml"),
@@ -35,8 +35,8 @@ rule check_domain:
     input:
         shards=lambda wildcards: domain_shards(),
         whitening=rules.compute_whitening.output.json,
-        hst=resource_files("hst/"),
-        psf=resource_files("psf/"),
+        hst=data_inputs("hst/"),
+        psf=data_inputs("psf/"),
         cosmos=cosmos_files(),
     output:
         csv=update("results/check_domain/domain_check.csv"),

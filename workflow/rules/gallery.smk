@@ -3,7 +3,7 @@
 
 rule plot_hst_gallery:
     input:
-        hst=resource_files("hst/"),
+        hst=data_inputs("hst/"),
     output:
         pdf=update("results/figures/hst_gallery.pdf"),
         png=update(

@@ -4,7 +4,7 @@
 
 rule analyze_hst:
     input:
-        hst=resource_files("hst/"),
+        hst=data_inputs("hst/"),
         model=rules.train_estimator.output.model,
         thresholds=rules.summarize_coverage.output.json,
         cdm=rules.measure_cdm_grid.output.csv if STAGE_ON["cdm_grid"] else [],

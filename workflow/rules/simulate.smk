@@ -7,7 +7,7 @@
 
 rule simulate_shard:
     input:
-        psf=resource_files("psf/"),
+        psf=data_inputs("psf/"),
         cosmos=cosmos_files(),
     output:
         h5=update("results/simulate_shard/{scene}/shard_{shard}.h5"),

@@ -26,7 +26,7 @@ rule train_estimator:
         val=lambda wildcards: shard_files("validation"),
         whitening=rules.compute_whitening.output.json,
         stream_data=lambda wildcards: (
-            [*resource_files("psf/"), *cosmos_files()] if STREAMING else []
+            [*data_inputs("psf/"), *cosmos_files()] if STREAMING else []
         ),
     output:
         model=update("results/train_estimator/model.pt"),

@@ -83,8 +83,9 @@ def seed_variants(
             raise SystematicsError(f"training seed {seed} is outside 0 .. 2^32-1")
         name = f"{run}_seed{seed}"
         overlay = _config.deep_merge(ESTIMATOR_ONLY, {"run_name": name, "training": {"seed": seed}})
-        overlay.pop("systematics", None)
-        merged = variant_config(campaign, overlay, root=root, shard_cache=cache)
+        # the campaign itself: systematics.common (smaller variants) does not apply
+        own = {k: v for k, v in campaign.items() if k != "systematics"}
+        merged = variant_config(own, overlay, root=root, shard_cache=cache)
         try:
             problems = plan_problems(_config.validate(merged))
         except _config.ConfigError as exc:

@@ -40,6 +40,9 @@ __all__ = [
     "fetch",
     "fetch_files",
     "verify_files",
+    "restore_deleted",
+    "FETCHED_RECORDS",
+    "FETCHED_MTIME",
 ]
 
 log = logging.getLogger(__name__)
@@ -211,6 +214,7 @@ def fetch(
         if target.is_file():
             if sha256sum(target) == entry.sha256:
                 log.info("%s: present and verified", entry.path)
+                _mark_fetched(dest, entry)
                 done.append(target)
                 continue
             log.warning("%s: present but checksum differs; replacing it", entry.path)
@@ -244,8 +248,55 @@ def fetch(
                 f"data file {entry.path} not found in {where} and {how}; set data.mirror "
                 f"or the SUBSLOPE_DATA_MIRROR environment variable to a folder that holds it"
             )
+        _mark_fetched(dest, entry)
         done.append(target)
     return done
+
+
+#: Folder (inside the resources folder) of the records of fetched files.
+FETCHED_RECORDS = ".fetched"
+
+
+def _mark_fetched(dest: Path, entry: RegistryEntry) -> None:
+    """Record that ``entry`` was fetched into ``dest`` (its checksum, in
+    ``dest/.fetched/<path>.sha256``): :func:`restore_deleted` puts such a file back."""
+    from subslope.io.atomic import write_text
+
+    record = dest / FETCHED_RECORDS / f"{entry.path}.sha256"
+    if not record.is_file() or record.read_text(encoding="utf-8").strip() != entry.sha256:
+        write_text(record, entry.sha256 + "\n")
+
+
+def restore_deleted(
+    dest: str | os.PathLike[str], *, mirror: str | os.PathLike[str] | None
+) -> list[Path]:
+    """Put back, from ``mirror``, every registered file that was fetched into ``dest``
+    before (it has a record) and is missing now; returns the restored paths.
+
+    The workflow calls this before it builds its graph: a restored file has the fixed
+    time stamp of every fetched file and the checksum of the registry, so the jobs that
+    read it see the file they read before and do not run again (a file fetched by a job
+    instead would make every reader run again). Files the mirror lacks are left to rule
+    fetch_data."""
+    dest = Path(dest)
+    mirror_dir = Path(mirror) if mirror is not None else None
+    restored = []
+    for entry in load_registry():
+        target = dest / entry.path
+        record = dest / FETCHED_RECORDS / f"{entry.path}.sha256"
+        if target.is_file():
+            if not record.is_file() and target.stat().st_mtime == FETCHED_MTIME:
+                _mark_fetched(dest, entry)  # fetched before the records were kept
+            continue
+        src = mirror_dir / entry.path if mirror_dir is not None else None
+        if not record.is_file() or src is None or not src.is_file():
+            continue
+        if record.read_text(encoding="utf-8").strip() != entry.sha256:
+            continue  # the registry changed since: a new file, fetched by its job
+        target.parent.mkdir(parents=True, exist_ok=True)
+        _copy_from_mirror(src, target, entry)
+        restored.append(target)
+    return restored
 
 
 def fetch_files(
