@@ -299,6 +299,21 @@ def test_defaults_fill_partial_sections():
         ({"hst": {"lens_centre": {"method": "fit"}}}, "hst.lens_centre.method", "'light_centroid'"),
         ({"cdm": {"band": [16, 184]}}, "cdm.band.1", "[0, 100]"),
         ({"stages": {"train": 1}}, "stages.train", "boolean"),
+        (
+            {"scenes": {"train": {"sky": {"level": {"dist": "normal", "mean": 0.1, "std": -1}}}}},
+            "scenes.train.sky.level.std = -1",
+            "(0, inf) (a normal prior takes dist, high, low, mean, std)",
+        ),
+        (
+            {"scenes": {"train": {"sky": {"level": {"dist": "gauss", "mean": 1}}}}},
+            "scenes.train.sky.level.dist = 'gauss' is not a prior",
+            "'uniform', 'normal', 'uniform_int', 'power_law', 'fixed'",
+        ),
+        (
+            {"scenes": {"train": {"sky": {"level": {"dist": "uniform", "low": 0}}}}},
+            "scenes.train.sky.level: 'high' is a required property",
+            "a uniform prior takes dist, high, low",
+        ),
     ],
 )
 def test_bad_values_name_the_key_and_what_is_allowed(bad, key, allowed):
@@ -440,6 +455,10 @@ def test_active_stages_follow_the_needs():
         ),
         ({"hst": {"combine": ["SDSSJ0000+0000"]}}, r"hst.combine: unknown system\(s\)"),
         ({"hst": {"highlight": ["J0946"]}}, r"hst.highlight: unknown system\(s\) \['J0946'\]"),
+        (
+            {"scenes": {"train": {"sky": {"level": {"dist": "uniform", "low": 1, "high": 0}}}}},
+            r"scenes.train.sky.level.low = 1.0 must be < scenes.train.sky.level.high = 0.0",
+        ),
         (
             {"instrument": {"noise_correlation": [0.5, 0.3]}},
             r"instrument.noise_correlation = \[0.5, 0.3\]: a range \[low, high\] needs low <= high",

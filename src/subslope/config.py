@@ -28,6 +28,8 @@ import jsonschema
 import numpy as np
 import yaml
 
+from subslope.schema_messages import describe
+
 __all__ = [
     "ConfigError",
     "RUN_ONLY_RENDER_KEYS",
@@ -127,56 +129,6 @@ def _fill(instance: dict[str, Any], schema: Mapping[str, Any]) -> None:
             _fill(instance[key], sub)
 
 
-def _key_path(parts) -> str:
-    return ".".join(str(p) for p in parts) or "<top level>"
-
-
-def _allowed(schema: Mapping[str, Any]) -> str:
-    """Human-readable description of what a (sub)schema allows."""
-    bits: list[str] = []
-    if "enum" in schema:
-        bits.append("one of " + ", ".join(repr(v) for v in schema["enum"]))
-    else:
-        types = schema.get("type")
-        if types is not None:
-            types = [types] if isinstance(types, str) else list(types)
-            bits.append(" or ".join(types))
-    lo = schema.get("minimum", schema.get("exclusiveMinimum"))
-    hi = schema.get("maximum", schema.get("exclusiveMaximum"))
-    if lo is not None or hi is not None:
-        left = "(" if "exclusiveMinimum" in schema else "["
-        right = ")" if "exclusiveMaximum" in schema else "]"
-        lo_s = "-inf" if lo is None else repr(lo)
-        hi_s = "inf" if hi is None else repr(hi)
-        bits.append(f"in {left}{lo_s}, {hi_s}{right}")
-    if "pattern" in schema:
-        bits.append(f"matching {schema['pattern']!r}")
-    if "minLength" in schema:
-        bits.append(f"at least {schema['minLength']} character(s)")
-    if "maxLength" in schema:
-        bits.append(f"at most {schema['maxLength']} characters")
-    return ", ".join(bits) if bits else "see the schema"
-
-
-def _describe(error: jsonschema.ValidationError) -> str:
-    path = list(error.absolute_path)
-    if error.validator == "additionalProperties":
-        known = set(error.schema.get("properties", {}))
-        unknown = sorted(k for k in error.instance if k not in known)
-        keys = ", ".join(_key_path(path + [k]) for k in unknown)
-        return f"unknown config key(s) {keys}; allowed keys at {_key_path(path)}: " + ", ".join(
-            sorted(known)
-        )
-    if error.validator == "required":
-        return f"config key {_key_path(path)}: {error.message}"
-    # The failing keyword sits in error.schema; the bounds/types of the whole key are in
-    # the parent schema of that keyword, which for our flat schema is error.schema itself.
-    return (
-        f"config key {_key_path(path)} = {error.instance!r} is not allowed "
-        f"(failed '{error.validator}'); allowed: {_allowed(error.schema)}"
-    )
-
-
 def validate(config: Mapping[str, Any], *, fill: bool = True) -> dict[str, Any]:
     """Validate ``config`` and return it with defaults filled: the one validation of a
     campaign configuration (the workflow and ``subslope validate-config`` both call it).
@@ -212,7 +164,7 @@ def _validate(config: Mapping[str, Any], fill: bool) -> dict[str, Any]:
     full = fill_defaults(config, schema) if fill else copy.deepcopy(dict(config))
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(full), key=lambda e: [str(p) for p in e.absolute_path])
-    problems = [_describe(e) for e in errors] or cross_key_problems(full)
+    problems = [describe(e) for e in errors] or cross_key_problems(full)
     if problems:
         lines = "\n".join("  - " + p for p in problems)
         raise ConfigError(f"invalid configuration ({len(problems)} problem(s)):\n{lines}")

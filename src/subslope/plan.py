@@ -156,6 +156,7 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
     the HST systems
     named in ``hst`` must be in the catalogue (when the catalogue is at hand). Called by
     the workflow when it loads and by ``subslope validate-config``."""
+    from subslope.simulation.priors import PriorError
     from subslope.simulation.scenes import SceneError, scenes_from_config
 
     config = _config.validate(config)
@@ -164,7 +165,7 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
         scenes_from_config(config.get("scenes"))
         for name in config["simulation"]["scenes"]:
             resolved_scene(config, name)
-    except SceneError as exc:
+    except (SceneError, PriorError) as exc:
         problems.append(str(exc))
     src = config["simulation"]["sources"]
     split = src["split"]
