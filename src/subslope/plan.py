@@ -29,6 +29,7 @@ __all__ = [
     "host_rules",
     "plan_problems",
     "plan_warnings",
+    "theta_e_warnings",
     "slurm_gpu_problems",
     "multiplier_label",
     "shard_job_config",
@@ -185,8 +186,27 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
     problems += cache_folder_problems(config)
     problems += _cosmos_folder_problems(config)
     problems += _psf_problems(config)
+    problems += _observation_problems(config)
     problems += _hst_name_problems(config)
     return problems
+
+
+def _observation_problems(config: Mapping[str, Any]) -> list[str]:
+    """A configured set of lenses (``observations.folder``) must match its manifest and
+    every cutout must fit the simulated instrument
+    (:mod:`subslope.io.observation_set`); the shipped set is checked by the registry."""
+    from subslope.io.observation_set import (
+        cutout_problems,
+        manifest_problems,
+        observation_folder,
+    )
+
+    folder, catalog, shipped = observation_folder(config)
+    if shipped:
+        return []
+    if not folder.is_dir():
+        return [f"config key observations.folder = {str(folder)!r}: no such folder"]
+    return manifest_problems(folder, catalog) or cutout_problems(config, folder, catalog)
 
 
 def _not_registered(config, names, prefix: str, kind: str) -> tuple[list[str], str, str]:
@@ -245,9 +265,13 @@ OUTSIDE_KEYS = ("data.resources_dir", "simulation.shard_cache", "simulation.rend
 
 def plan_warnings(config: Mapping[str, Any], root: str | os.PathLike[str] = ".") -> list[str]:
     """Legitimate but surprising choices, to log before the first job: a path key of
-    :data:`OUTSIDE_KEYS` outside the project folder ``root``."""
+    :data:`OUTSIDE_KEYS` outside the project folder ``root``; a lens whose θ_E lies
+    outside the training prior."""
+    from subslope.io.observation_set import observation_folder
+
     base = Path(root).resolve()
-    out = []
+    _, catalog, _ = observation_folder(config)
+    out = theta_e_warnings(config, catalog) if catalog.is_file() else []
     for key in OUTSIDE_KEYS:
         value: Any = config
         for part in key.split("."):
@@ -261,6 +285,25 @@ def plan_warnings(config: Mapping[str, Any], root: str | os.PathLike[str] = ".")
                 f"the campaign still writes its results to {base / 'results'}"
             )
     return out
+
+
+def theta_e_warnings(config: Mapping[str, Any], catalog, scene: str = "train") -> list[str]:
+    """Lenses of ``catalog`` whose θ_E lies outside the support of ``scene``'s θ_E prior:
+    said before a run, not refused (four of the shipped 13 lie above the reference
+    prior's 1.3″)."""
+    from subslope.io.observations import ObservationError, load_catalog
+
+    try:
+        rows = load_catalog(catalog)
+    except ObservationError:
+        return []
+    low, high = resolved_scene(config, scene)[0].main_lens.theta_e.support
+    return [
+        f"{row['system']} ({catalog}): theta_E_arcsec = {row['theta_E_arcsec']} lies outside "
+        f"the training prior of scenes.{scene}.main_lens.theta_e, [{low:g}, {high:g}]"
+        for row in rows
+        if not low <= row["theta_E_arcsec"] <= high
+    ]
 
 
 def _cosmos_folder_problems(config: Mapping[str, Any]) -> list[str]:
@@ -279,8 +322,11 @@ def _hst_name_problems(config: Mapping[str, Any]) -> list[str]:
     import csv
     from pathlib import Path
 
-    candidates = [Path(config["data"]["resources_dir"]) / "hst" / "catalog.csv"]
-    if config["data"].get("mirror"):
+    from subslope.io.observation_set import observation_folder
+
+    _, own, shipped = observation_folder(config)
+    candidates = [own]
+    if shipped and config["data"].get("mirror"):
         candidates.append(Path(config["data"]["mirror"]) / "hst" / "catalog.csv")
     catalog = next((p for p in candidates if p.is_file()), None)
     if catalog is None:

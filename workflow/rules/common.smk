@@ -12,6 +12,7 @@ import subslope.io.atomic
 import subslope.plan
 import subslope.config
 import subslope.io.resources
+import subslope.io.observation_set
 import subslope.simulation.resolve
 import subslope.stages.train
 
@@ -27,8 +28,9 @@ subslope.config.apply_env_overrides(config)  # SUBSLOPE_DATA_MIRROR -> data.mirr
 _PROBLEMS = subslope.plan.plan_problems(config)
 if _PROBLEMS:
     raise WorkflowError("invalid configuration:\n  - " + "\n  - ".join(_PROBLEMS))
-for _warning in subslope.plan.plan_warnings(config):
-    logger.warning(f"warning: {_warning}")
+if workflow.is_main_process:
+    for _warning in subslope.plan.plan_warnings(config):
+        logger.warning(f"warning: {_warning}")
 # Outputs of jobs that started and did not finish (killed, or failed and restored by
 # update()) are made older than any input, so that their jobs run again
 # (subslope.logs). Only the main process: a cluster job's own Snakemake leaves the
@@ -80,11 +82,34 @@ def resource_files(prefix):
 
 
 def data_inputs(prefix):
-    """resource_files(prefix) as inputs of the rules that read them: ancient, so that
-    fetching a file again (deleted, or rule fetch_data changed) reruns none of its
-    readers. The files are identified by their registry checksums, which fetch_data
-    verifies; the registry is part of every shard's cache key."""
-    return [ancient(f) for f in resource_files(prefix)]
+    """resource_files(prefix) as inputs of the rules that read them. Not ancient():
+    with an ancient input whose fetch_data job runs, Snakemake leaves the readers' other
+    reasons to rerun to the next invocation (snakemake/snakemake#4166), a stale result;
+    a deleted data file is restored before the graph is built instead (above), so that
+    it reruns no reader."""
+    return resource_files(prefix)
+
+
+# The real lenses the HST stages read (subslope.io.observation_set): the shipped 13 as
+# fetched data, or the configured folder's catalogue, cutouts and manifest.
+OBS_FOLDER, OBS_CATALOG, OBS_SHIPPED = subslope.io.observation_set.observation_folder(
+    config
+)
+
+
+def observation_inputs():
+    """Input files of the rules that read the real lenses."""
+    if OBS_SHIPPED:
+        return data_inputs("hst/")
+    files = subslope.io.observation_set.observation_files(OBS_FOLDER, OBS_CATALOG)
+    return [str(OBS_FOLDER / subslope.io.observation_set.MANIFEST), *map(str, files)]
+
+
+def observation_source():
+    """What the HST stages load (subslope.io.observations.load_hst): the folder of the
+    shipped lenses, else the configured catalogue file (its folder holds the cutouts).
+    """
+    return str(OBS_FOLDER) if OBS_SHIPPED else str(OBS_CATALOG)
 
 
 def cosmos_files():

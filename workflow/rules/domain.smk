@@ -6,7 +6,7 @@
 
 rule fit_lens_light:
     input:
-        hst=data_inputs("hst/"),
+        hst=observation_inputs(),
         psf=data_inputs("psf/"),
     output:
         csv=update("results/fit_lens_light/lens_light_fits.csv"),
@@ -21,7 +21,7 @@ rule fit_lens_light:
     resources:
         mem_mb=2000,
     params:
-        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
+        folder=observation_source(),
         # the values the fits depend on: a change reruns the job
         depends=lambda wildcards: {
             "instrument": config["instrument"],
@@ -35,7 +35,7 @@ rule check_domain:
     input:
         shards=lambda wildcards: domain_shards(),
         whitening=rules.compute_whitening.output.json,
-        hst=data_inputs("hst/"),
+        hst=observation_inputs(),
         psf=data_inputs("psf/"),
         cosmos=cosmos_files(),
     output:
@@ -78,7 +78,7 @@ rule check_domain:
         mem_mb=4000,
         runtime=60,
     params:
-        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
+        folder=observation_source(),
         scene=config["domain"]["scene"],
         n_images=config["domain"]["n_images"],
         # the values the statistics depend on: a change reruns the job

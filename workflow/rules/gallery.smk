@@ -3,7 +3,7 @@
 
 rule plot_hst_gallery:
     input:
-        hst=data_inputs("hst/"),
+        hst=observation_inputs(),
     output:
         pdf=update("results/figures/hst_gallery.pdf"),
         png=update(
@@ -18,7 +18,7 @@ rule plot_hst_gallery:
     conda:
         "../envs/subslope.yaml"
     params:
-        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
+        folder=observation_source(),
         run_name=config["run_name"],
         pixel_scale=config["instrument"]["pixel_scale"],
     script:

@@ -4,7 +4,7 @@
 
 rule analyze_hst:
     input:
-        hst=data_inputs("hst/"),
+        hst=observation_inputs(),
         model=rules.train_estimator.output.model,
         thresholds=rules.summarize_coverage.output.json,
         cdm=rules.measure_cdm_grid.output.csv if STAGE_ON["cdm_grid"] else [],
@@ -39,7 +39,7 @@ rule analyze_hst:
     resources:
         mem_mb=2000,
     params:
-        folder=lambda wildcards, input: os.path.dirname(input.hst[0]),
+        folder=observation_source(),
         hst=config["hst"],
         gamma_grid=GRID,
         pixel_scale=config["instrument"]["pixel_scale"],

@@ -20,8 +20,9 @@ train --config C --train SHARD... --val SHARD... --whitening J --out DIR [--ckpt
 analyze-hst --config C --model M --thresholds J --out DIR [--hst DIR] [--cdm CSV]
     Profiles, intervals and figures 5-6 of the real HST lenses (as rule analyze_hst).
 
-The commands over whole campaigns (systematics, cache, cluster-jobs, compare-runs,
-results-page) are in :mod:`subslope.cli.campaigns`.
+The commands over whole campaigns (systematics, seeds, cache, cluster-jobs, compare-runs,
+results-page, cost) are in :mod:`subslope.cli.campaigns`; ``observations add|check`` (a
+set of real lenses of one's own) in :mod:`subslope.cli.observations`.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import yaml
 
 from subslope._version import __version__
 from subslope.cli.campaigns import add_campaign_commands
+from subslope.cli.observations import add_observation_commands
 
 __all__ = ["main", "build_parser"]
 
@@ -376,6 +378,7 @@ def _add_real_data_commands(commands) -> None:
     p.add_argument("--seed", type=int, default=None, help="seed (default: the config's)")
     p.set_defaults(func=_domain_check)
     add_campaign_commands(commands)
+    add_observation_commands(commands)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

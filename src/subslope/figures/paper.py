@@ -94,16 +94,8 @@ def concentration_grid(
     if mles_tnfw is not None:
         series.append(("tNFW subhalos", mles_tnfw, C_TNFW, "s", 1.03))
     for label, ref, color in (("NFW", reference_nfw, C_NFW), ("tNFW", reference_tnfw, C_TNFW)):
-        if ref is None:
-            continue
-        ref = np.asarray(ref, dtype=np.float64)
-        if ref.shape != (3, a.size):
-            raise ValueError(f"{label} reference must have shape (3, {a.size}), got {ref.shape}")
-        ax.fill_between(a, ref[0], ref[2], color=color, alpha=0.12, lw=0)
-        ax.plot(
-            a, ref[1], color=color, ls="--", lw=1.2, marker="_", ms=14,
-            label=f"{label} effective slope of the sets (median, 16–84%)",
-        )  # fmt: skip
+        if ref is not None:
+            _draw_reference(ax, a, ref, label, color)
     for label, m, color, marker, shift in series:
         m = np.asarray(m, dtype=np.float64)
         if m.ndim != 2 or m.shape[0] != a.size:
@@ -145,6 +137,18 @@ def concentration_grid(
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), fontsize=7, frameon=False)
     footer(fig, run_name, source)
     return _finish(fig, f"Slope measured on {n_images}-image stacks of (t)NFW subhalo simulations")
+
+
+def _draw_reference(ax, a, ref, label: str, color) -> None:
+    """The sets' effective slopes ``ref`` (rows lo, median, hi) as a dashed line and band."""
+    ref = np.asarray(ref, dtype=np.float64)
+    if ref.shape != (3, a.size):
+        raise ValueError(f"{label} reference must have shape (3, {a.size}), got {ref.shape}")
+    ax.fill_between(a, ref[0], ref[2], color=color, alpha=0.12, lw=0)
+    ax.plot(
+        a, ref[1], color=color, ls="--", lw=1.2, marker="_", ms=14,
+        label=f"{label} effective slope of the sets (median, 16–84%)",
+    )  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------

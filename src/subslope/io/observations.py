@@ -8,7 +8,9 @@ indexed ``image[row, column]`` = ``image[y, x]`` (see docs/design.md).
 
 ``catalog.csv`` has the columns ``file, system, z_lens, z_source, theta_E_arcsec``;
 ``system`` is the SDSS J name used in tables and figures (the file names of some
-cutouts are plate-MJD-fibre ids).
+cutouts are plate-MJD-fibre ids). A catalogue of other lenses may add the columns
+``exposure_time`` (s), ``pixel_scale`` (arcsec) and ``psf_file`` (a PSF image in the
+same folder) per lens (:data:`OPTIONAL_COLUMNS`; :mod:`subslope.io.observation_set`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ __all__ = [
     "load_catalog",
     "load_hst",
     "IMAGE_SHAPE",
+    "CATALOG_COLUMNS",
+    "OPTIONAL_COLUMNS",
     "find_lens_centre",
 ]
 
@@ -37,6 +41,9 @@ __all__ = [
 IMAGE_SHAPE = (100, 100)
 
 CATALOG_COLUMNS = ("file", "system", "z_lens", "z_source", "theta_E_arcsec")
+
+#: Optional per-lens catalogue columns; an empty cell means "as the instrument".
+OPTIONAL_COLUMNS = ("exposure_time", "pixel_scale", "psf_file")
 
 
 class ObservationError(ValueError):
@@ -149,11 +156,7 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
         name = (row["system"] or "").strip()
         if not file or not name:
             raise ObservationError(f"{where}: empty 'file' or 'system'")
-        if Path(file).is_absolute() or ".." in Path(file).parts or "\\" in file:
-            raise ObservationError(
-                f"{where} ({name}): file {file!r} must be a path inside the catalogue's "
-                "folder (relative, without '..')"
-            )
+        _check_inside(file, "file", f"{where} ({name})")
         if file in seen_files:
             raise ObservationError(
                 f"{where}: duplicate file {file!r} (also on line {seen_files[file]})"
@@ -179,10 +182,35 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
                 "z_lens": z_l,
                 "z_source": z_s,
                 "theta_E_arcsec": theta_e,
+                **_optional(row, f"{where} ({name})"),
             }
         )
     if not out:
         raise ObservationError(f"{path}: catalogue has no rows")
+    return out
+
+
+def _check_inside(file: str, column: str, where: str) -> None:
+    if Path(file).is_absolute() or ".." in Path(file).parts or "\\" in file:
+        raise ObservationError(
+            f"{where}: {column} {file!r} must be a path inside the catalogue's folder "
+            "(relative, without '..')"
+        )
+
+
+def _optional(row: dict, where: str) -> dict:
+    """The optional columns of a catalogue row that are given (:data:`OPTIONAL_COLUMNS`)."""
+    out: dict = {}
+    for column in ("exposure_time", "pixel_scale"):
+        value = (row.get(column) or "").strip()
+        if value:
+            out[column] = _as_float(value, column, where)
+            if out[column] <= 0:
+                raise ObservationError(f"{where}: column {column!r} = {value!r} must be > 0")
+    psf = (row.get("psf_file") or "").strip()
+    if psf:
+        _check_inside(psf, "psf_file", where)
+        out["psf_file"] = psf
     return out
 
 
@@ -195,11 +223,14 @@ def load_hst(
 
     Parameters
     ----------
-    folder: folder with the image files (e.g. ``resources/hst``).
+    folder: folder with the image files (e.g. ``resources/hst``), or the catalogue file
+        itself (its folder then holds the images).
     catalog: catalogue file (default ``folder/catalog.csv``).
     shape: expected image shape.
     """
     folder = Path(folder)
+    if folder.is_file():
+        folder, catalog = folder.parent, folder
     catalog = folder / "catalog.csv" if catalog is None else Path(catalog)
     observations = []
     for row in load_catalog(catalog):

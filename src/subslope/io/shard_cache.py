@@ -67,7 +67,7 @@ CODE_PARTS = (
     "io",
     "schemas",
     "data",
-    "config.py",
+    "config",
     "devices.py",
     "ragged.py",
     "_version.py",

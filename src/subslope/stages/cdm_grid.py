@@ -103,6 +103,39 @@ def _reference(slopes, scene: str, multipliers, band) -> np.ndarray | None:
     return out
 
 
+def _scene_grid(files, scene: str, mults, band, slopes) -> tuple[list[dict], np.ndarray]:
+    """The table rows of ``scene`` (one per multiplier with sets) and its (n_a, n_sets)
+    stack MLEs, padded with NaN."""
+    rows, per_a = [], []
+    for a in mults:
+        paths = files.get((scene, a))
+        if not paths:
+            per_a.append(np.array([]))
+            continue
+        st = set_stacks(read_profiles(paths))
+        per_a.append(st["mle"])
+        lo, med, hi = np.percentile(st["mle"], [band[0], 50, band[1]])
+        ref = _reference(slopes, scene, [a], band)
+        ref_med = float(ref[1, 0]) if ref is not None else np.nan
+        rows.append(
+            {
+                "scene": scene,
+                "multiplier": a,
+                "n_sets": int(st["mle"].size),
+                "n_images": int(np.median(st["n_images"])),
+                "median": med,
+                "lo": lo,
+                "hi": hi,
+                "reference": ref_med,
+                "distance": med - ref_med,
+            }
+        )
+    mat = np.full((len(mults), max(1, max(m.size for m in per_a))), np.nan)
+    for i, m in enumerate(per_a):
+        mat[i, : m.size] = m
+    return rows, mat
+
+
 def measure_cdm_grid(
     files: Mapping[tuple[str, float], Sequence],
     out_npz,
@@ -136,35 +169,8 @@ def measure_cdm_grid(
     scenes = [s for s in (nfw_scene, tnfw_scene) if s is not None and any(k[0] == s for k in files)]
     rows, arrays = [], {"multipliers": np.asarray(mults)}
     for scene in scenes:
-        per_a = []
-        for a in mults:
-            paths = files.get((scene, a))
-            if not paths:
-                per_a.append(np.array([]))
-                continue
-            st = set_stacks(read_profiles(paths))
-            per_a.append(st["mle"])
-            lo, med, hi = np.percentile(st["mle"], [band[0], 50, band[1]])
-            ref = _reference(slopes, scene, [a], band)
-            ref_med = float(ref[1, 0]) if ref is not None else np.nan
-            rows.append(
-                {
-                    "scene": scene,
-                    "multiplier": a,
-                    "n_sets": int(st["mle"].size),
-                    "n_images": int(np.median(st["n_images"])),
-                    "median": med,
-                    "lo": lo,
-                    "hi": hi,
-                    "reference": ref_med,
-                    "distance": med - ref_med,
-                }
-            )
-        width = max(1, max(m.size for m in per_a))
-        mat = np.full((len(mults), width), np.nan)
-        for i, m in enumerate(per_a):
-            mat[i, : m.size] = m
-        arrays[f"mles_{scene}"] = mat
+        scene_rows, arrays[f"mles_{scene}"] = _scene_grid(files, scene, mults, band, slopes)
+        rows += scene_rows
     table = pd.DataFrame(rows, columns=list(GRID_COLUMNS))
     out_npz = Path(out_npz)
     with atomic_write(out_npz) as tmp, open(tmp, "wb") as fh:

@@ -145,6 +145,7 @@ def lens_light_fit_key(config: Mapping[str, Any], hst_folder: str | os.PathLike[
     lens-centre settings (``hst.lens_centre``) and the code that draws, reads and fits
     (:data:`subslope.io.shard_cache.CODE_PARTS` and this module)."""
     folder = Path(hst_folder)
+    folder = folder.parent if folder.is_file() else folder  # a configured catalogue
     files = {p.name: file_sha256(p) for p in sorted(folder.iterdir()) if p.is_file()}
     psf = config["instrument"]["psf"]
     if psf["source"] != "gaussian":

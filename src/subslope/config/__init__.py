@@ -28,7 +28,7 @@ import jsonschema
 import numpy as np
 import yaml
 
-from subslope.schema_messages import describe
+from subslope.config.messages import describe
 
 __all__ = [
     "ConfigError",
