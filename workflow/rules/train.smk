@@ -40,12 +40,15 @@ rule train_estimator:
     priority: 1
     conda:
         "../envs/subslope.yaml"
-    threads: config["training"]["threads"]
+    # training.ranks processes (torchrun, started by the job itself): a core each at least
+    threads: max(config["training"]["threads"], config["training"]["ranks"])
     resources:
         mem_mb=config["training"]["mem_mb"],
         runtime=config["training"]["runtime"],
         # GPU request for cluster executors (SLURM: --gpus); local runs ignore it.
         gpu=config["training"]["gpus"],
+        # one task: torchrun inside it starts the ranks (not one SLURM task per GPU)
+        tasks=1,
     params:
         training=TRAINING,
         ckpt_dir=f"results/checkpoints/train_estimator/{CKPT_KEY}",

@@ -34,6 +34,8 @@ try:
         snakemake.params.ckpt_dir,
         device=snakemake.params.device,
         stream=stream,
+        # not a param: the number of processes does not change the training
+        ranks=snakemake.config["training"]["ranks"],
     )
     logging.info("training done: %s", summary)
 except Exception:

@@ -39,10 +39,18 @@ def dihedral(x: Tensor, k: int) -> Tensor:
     return torch.rot90(x, int(k) % 4, (-2, -1))
 
 
-def random_dihedral(x: Tensor, generator: torch.Generator) -> Tensor:
+def random_dihedral(
+    x: Tensor, generator: torch.Generator, *, start: int = 0, total: int | None = None
+) -> Tensor:
     """Every image of the batch ``x`` ``(B, ..., H, W)`` under its own element of D₄,
-    drawn uniformly from ``generator`` (CPU); a new tensor, ``x`` untouched."""
-    k = torch.randint(0, N_DIHEDRAL, (x.shape[0],), generator=generator).to(x.device)
+    drawn uniformly from ``generator`` (CPU); a new tensor, ``x`` untouched.
+
+    ``x`` may be the rows ``start .. start + B`` of a batch of ``total`` images (one rank's
+    share in data-parallel training): the elements are drawn for the whole batch and
+    this share's are used, so every image gets the element one process would give it."""
+    total = x.shape[0] if total is None else int(total)
+    k = torch.randint(0, N_DIHEDRAL, (total,), generator=generator)
+    k = k[start : start + x.shape[0]].to(x.device)
     out = torch.empty_like(x)
     for element in range(N_DIHEDRAL):
         rows = (k == element).nonzero(as_tuple=True)[0]

@@ -11,14 +11,24 @@ import os
 import random
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from subslope.io.atomic import atomic_write
 
-__all__ = ["CheckpointError", "atomic_save", "rng_state", "set_rng_state", "torch_load"]
+if TYPE_CHECKING:
+    from .models import RatioEstimator
+
+__all__ = [
+    "load_estimator",
+    "CheckpointError",
+    "atomic_save",
+    "rng_state",
+    "set_rng_state",
+    "torch_load",
+]
 
 
 class CheckpointError(ValueError):
@@ -73,3 +83,31 @@ def set_rng_state(state: Mapping[str, Any]) -> None:
 def atomic_save(obj, path: Path) -> None:
     with atomic_write(path) as tmp:
         torch.save(obj, tmp)
+
+
+def load_estimator(path, *, map_location="cpu") -> tuple[RatioEstimator, dict[str, Any]]:
+    """Rebuild the trained estimator from ``model.pt``: ``(model in eval mode, metadata)``.
+
+    ``metadata`` holds every entry of the file but the weights: ``model_card``,
+    ``whitening`` ({mean, std}), ``gamma_norm``, ``preprocess`` ({pixel_scale,
+    mask_factor}), ``config``, ``config_hash``, ``history``, ``best_epoch``, ...
+    """
+    from .models import build_model
+
+    payload = torch_load(
+        path,
+        map_location,
+        "delete it and run snakemake again to write it anew (training resumes from its "
+        "checkpoints)",
+    )
+    if payload.get("format") != "subslope.nre/1":
+        raise ValueError(
+            f"{os.fspath(path)!r} is not a subslope estimator file (format "
+            f"{payload.get('format')!r})"
+        )
+    card = payload["model_card"]
+    model = build_model(card["arch"], gamma_mean=card["gamma_mean"], gamma_std=card["gamma_std"])
+    model.load_state_dict(payload["model"])
+    model.eval()
+    meta = {k: v for k, v in payload.items() if k != "model"}
+    return model, meta

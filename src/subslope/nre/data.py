@@ -173,6 +173,7 @@ class ShardBatches(Dataset):
         self._block_start = np.asarray(starts, dtype=np.int64)
         self._block_len = np.asarray(lens, dtype=np.int64)
         self.epoch = 0
+        self.part: tuple[int, int] | None = None  # (rank, ranks): read that share only
         self._plan: tuple[int, np.ndarray, np.ndarray] | None = None
         self._files: dict[int, h5py.File] = {}
         self._pid = os.getpid()
@@ -240,6 +241,10 @@ class ShardBatches(Dataset):
 
     def __getitem__(self, b: int) -> dict[str, torch.Tensor]:
         blk, shard, rows = self.batch_rows(int(b))
+        if self.part is not None:  # data-parallel training: this rank's contiguous share
+            rank, ranks = self.part
+            lo, hi = rank * len(rows) // ranks, (rank + 1) * len(rows) // ranks
+            blk, shard, rows = blk[lo:hi], shard[lo:hi], rows[lo:hi]
         n = len(rows)
         images = light = None
         params = {k: np.empty(n, dtype=np.float32) for k in PARAM_KEYS}

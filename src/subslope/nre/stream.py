@@ -72,6 +72,7 @@ class StreamBatches(Dataset):
         self.pixel_scale, self.mask_factor = pixel_scale, mask_factor
         self.multiprocessing_context = multiprocessing_context
         self.epoch = 0
+        self.part: tuple[int, int] | None = None  # (rank, ranks): simulate that share only
 
     @property
     def n_images(self) -> int:
@@ -96,8 +97,13 @@ class StreamBatches(Dataset):
     def __getitem__(self, b: int) -> dict[str, torch.Tensor]:
         if not 0 <= int(b) < len(self):
             raise IndexError(f"batch index {b} out of range for {len(self)} batches")
-        images, params = self.simulator.images(self.batch_size, self.seed_sequence(b))
-        index = int(b) * self.batch_size + np.arange(self.batch_size)
+        seq, n, first = self.seed_sequence(b), self.batch_size, 0
+        if self.part is not None:  # data-parallel training: this rank's share, own seeds
+            rank, ranks = self.part
+            first, n = rank * n // ranks, (rank + 1) * n // ranks - rank * n // ranks
+            seq = np.random.SeedSequence(entropy=self.seed, spawn_key=(self.epoch, int(b), rank))
+        images, params = self.simulator.images(n, seq)
+        index = int(b) * self.batch_size + first + np.arange(n)
         light = params.get("light_model") if self.inputs.needs_light else None
         if self.inputs.needs_light and light is None:
             raise ValueError(

@@ -30,7 +30,6 @@ its hash, and the training log; :func:`load_estimator` rebuilds the model from i
 
 from __future__ import annotations
 
-import csv
 import logging
 import math
 import os
@@ -48,14 +47,30 @@ import torch
 from tqdm.auto import tqdm
 
 from subslope.devices import pick_device
-from subslope.io.atomic import atomic_write
 
+from .artifacts import summary, write_log, write_model
 from .augment import random_dihedral, step_generator
-from .checkpoints import CheckpointError, atomic_save, rng_state, set_rng_state, torch_load
+from .checkpoints import (
+    CheckpointError,
+    atomic_save,
+    load_estimator,
+    rng_state,
+    set_rng_state,
+    torch_load,
+)
 from .data import ShardBatches, make_loader, read_labels
-from .inputs import InputTransform
-from .loss import NRELoss
-from .models import RatioEstimator, build_model, model_card
+from .distributed import (
+    Ranks,
+    close_ranks,
+    gather_labels,
+    global_mean,
+    rank_device,
+    setup_ranks,
+    share_loss,
+    sync_batch_norm,
+)
+from .loss import NRELoss, negative_indices
+from .models import RatioEstimator, build_model
 from .preprocess import read_inputs, read_whitening
 from .stream import StreamBatches
 from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
@@ -72,8 +87,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-LOG_COLUMNS = ("epoch", "train_loss", "val_loss", "lr", "seconds", "images_per_s")
-
 
 def _amp_dtype(cfg, device: torch.device) -> torch.dtype | None:
     if device.type != "cuda" or cfg["amp"] == "off":
@@ -81,14 +94,6 @@ def _amp_dtype(cfg, device: torch.device) -> torch.dtype | None:
     if cfg["amp"] == "bf16" or (cfg["amp"] == "auto" and torch.cuda.is_bf16_supported()):
         return torch.bfloat16
     return torch.float16
-
-
-def _write_log(history: Sequence[Mapping[str, Any]], path: Path) -> None:
-    with atomic_write(path) as tmp, open(tmp, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=LOG_COLUMNS)
-        w.writeheader()
-        for row in history:
-            w.writerow({k: row[k] for k in LOG_COLUMNS})
 
 
 @torch.no_grad()
@@ -157,6 +162,9 @@ def train(
     cfg = resolve_config(config)
     chash = config_hash(cfg)
     device = pick_device(device, key="training.device")
+    ranks = setup_ranks(device)
+    if ranks.size > 1:
+        device = rank_device(cfg, device, ranks)
     inputs = read_inputs(whitening, expect=cfg["inputs"])
     whitening = read_whitening(whitening)
     out_dir, ckpt_dir = Path(out_dir), Path(ckpt_dir)
@@ -181,14 +189,14 @@ def train(
             (whitening, inputs),
             out_dir,
             ckpt_dir,
-            last_path,
-            best_path,
-            device,
+            (last_path, best_path),
+            (device, ranks),
             amp_dtype,
         )
     finally:
         torch.use_deterministic_algorithms(prev_det)
         torch.backends.cudnn.benchmark = prev_bench
+        close_ranks(ranks)
 
 
 @dataclass
@@ -207,6 +215,8 @@ class _Run:
     amp_dtype: torch.dtype | None
     last_path: Path
     best_path: Path
+    ranks: Ranks = field(default_factory=Ranks)
+    forward: Any = None  # the model the loss calls (DistributedDataParallel with ranks)
     state: dict[str, Any] = field(
         default_factory=lambda: {
             "epoch": 0,
@@ -224,6 +234,12 @@ class _Run:
     )
 
     def checkpoint(self) -> None:
+        """Rank 0 writes ``last.pt``; every rank waits for it."""
+        if self.ranks.main:
+            self._write_last()
+        self.ranks.barrier()
+
+    def _write_last(self) -> None:
         atomic_save(
             {
                 "config": self.cfg,
@@ -239,8 +255,10 @@ class _Run:
         )
 
 
-def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_path: Path) -> _Run:
-    """Seed every generator, build the model, optimiser, scheduler and losses."""
+def _start(cfg, chash, train_shards, placement, amp_dtype, paths) -> _Run:
+    """Seed every generator, build the model, optimiser, scheduler and losses (with
+    several ranks: batch norm over the whole batch, DistributedDataParallel)."""
+    device, ranks = placement
     labels = (
         train_shards.labels()
         if isinstance(train_shards, StreamBatches)
@@ -256,6 +274,12 @@ def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_pa
     np.random.seed(seed % 2**32)
     random.seed(seed)
     model = build_model(cfg["arch"], gamma_mean=gamma_mean, gamma_std=gamma_std).to(device)
+    forward = model
+    if ranks.size > 1:
+        model = sync_batch_norm(model, device)
+        forward = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
     opt = torch.optim.AdamW(model.parameters(), lr=cfg["lr"], weight_decay=cfg["weight_decay"])
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(
         opt,
@@ -282,8 +306,9 @@ def _start(cfg, chash, train_shards, device, amp_dtype, last_path: Path, best_pa
         val_loss_fn,
         device,
         amp_dtype,
-        last_path,
-        best_path,
+        *paths,
+        ranks,
+        forward,
     )
 
 
@@ -329,15 +354,36 @@ def _step(run: _Run, batch, pin: bool) -> int:
     """One optimiser step on ``batch``; returns the number of images."""
     x = batch["x"].to(run.device, non_blocking=pin)
     g = batch["gamma"].to(run.device, non_blocking=pin)
-    if run.cfg["augment"] == "dihedral":
-        x = random_dihedral(x, step_generator(run.cfg["seed"], run.state["step"]))
+    if run.cfg["augment"] == "dihedral":  # the global batch's draw, this rank's share
+        n_all = x.shape[0] * run.ranks.size
+        gen = step_generator(run.cfg["seed"], run.state["step"])
+        x = random_dihedral(x, gen, start=run.ranks.share(n_all)[0], total=n_all)
     ctx = (
         torch.autocast(run.device.type, dtype=run.amp_dtype)
         if run.amp_dtype is not None
         else nullcontext()
     )
+    if run.ranks.size > 1:
+        return _share_step(run, x, g, ctx)
     with ctx:
         loss = run.loss_fn(g, x)
+    return _apply(run, loss, loss, x.shape[0])
+
+
+def _share_step(run: _Run, x, g, ctx) -> int:
+    """One step of this rank on its share ``x`` of the global batch (labels ``g``)."""
+    ranks = run.ranks
+    gamma_all = gather_labels(g, ranks)
+    total = gamma_all.shape[0]
+    pi = negative_indices(total, run.cfg["negatives"], device=gamma_all.device)
+    with ctx:
+        loss = share_loss(run.forward, gamma_all, x, pi, ranks)
+    return _apply(run, loss, None, total)
+
+
+def _apply(run: _Run, loss, value, n: int) -> int:
+    """Backward and optimiser step; the step's loss (``value``, or the ranks' mean of
+    ``loss``) is added to the epoch's sums for ``n`` images."""
     run.opt.zero_grad(set_to_none=True)
     if run.scaler is not None:
         run.scaler.scale(loss).backward()
@@ -346,12 +392,11 @@ def _step(run: _Run, batch, pin: bool) -> int:
     else:
         loss.backward()
         run.opt.step()
-    lv = float(loss.detach())
+    lv = float(value.detach()) if value is not None else global_mean(loss, run.ranks)
     if not math.isfinite(lv):
         raise FloatingPointError(
             f"training loss is {lv} at epoch {run.state['epoch']}, step {run.state['step']}"
         )
-    n = x.shape[0]
     state = run.state
     state["loss_sum"] += lv * n
     state["loss_count"] += n
@@ -438,53 +483,25 @@ def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
         row["seconds"],
         row["images_per_s"],
     )
+    best = {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}
     if val < state["best_val"] - cfg["min_delta"]:
         state["best_val"], state["bad_epochs"] = val, 0
-        atomic_save(
-            {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path
-        )
+        if run.ranks.main:
+            atomic_save(best, run.best_path)
     else:
         state["bad_epochs"] += 1
         if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
             state["best_val"] = val
-            atomic_save(
-                {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}, run.best_path
-            )
+            if run.ranks.main:
+                atomic_save(best, run.best_path)
     state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
     if state["bad_epochs"] >= cfg["early_stop_patience"]:
         state["finished"], state["stop_reason"] = True, "early_stop"
     elif state["epoch"] >= cfg["max_epochs"]:
         state["finished"], state["stop_reason"] = True, "max_epochs"
     run.checkpoint()
-    _write_log(state["history"], out_dir / "training_log.csv")
-
-
-def _write_model(run: _Run, whitening, inputs: InputTransform, out_dir: Path) -> Path:
-    """``model.pt``: the best weights with everything needed to use them."""
-    cfg = run.cfg
-    best = torch_load(run.best_path, "cpu", f"delete {run.best_path.parent} to train afresh")
-    run.model.load_state_dict(best["model"])
-    model_path = out_dir / "model.pt"
-    atomic_save(
-        {
-            "format": "subslope.nre/1",
-            "model": {k: v.cpu() for k, v in run.model.state_dict().items()},
-            "model_card": model_card(run.model),
-            "whitening": {"mean": whitening[0], "std": whitening[1]},
-            "inputs": inputs.to_json(),
-            "gamma_norm": {"mean": float(run.model.gamma_mean), "std": float(run.model.gamma_std)},
-            "preprocess": {"pixel_scale": cfg["pixel_scale"], "mask_factor": cfg["mask_factor"]},
-            "config": cfg,
-            "config_hash": run.chash,
-            "history": run.state["history"],
-            "best_epoch": int(best["epoch"]),
-            "best_val_loss": float(best["val_loss"]),
-            "stop_reason": run.state["stop_reason"],
-            "torch_version": str(torch.__version__),
-        },
-        model_path,
-    )
-    return model_path
+    if run.ranks.main:
+        write_log(state["history"], out_dir / "training_log.csv")
 
 
 def _train(
@@ -495,16 +512,17 @@ def _train(
     prep,
     out_dir,
     ckpt_dir,
-    last_path,
-    best_path,
-    device,
+    paths,
+    placement,
     amp_dtype,
 ):
     whitening, inputs = prep
-    run = _start(cfg, chash, train_shards, device, amp_dtype, last_path, best_path)
+    run = _start(cfg, chash, train_shards, placement, amp_dtype, paths)
     _resume(run, ckpt_dir)
     state = run.state
     train_ds = _training_batches(cfg, train_shards, whitening, inputs)
+    if run.ranks.size > 1:
+        train_ds.part = (run.ranks.rank, run.ranks.size)
     val_ds = ShardBatches(
         val_shards,
         cfg["val_batch_size"] or cfg["batch_size"],
@@ -521,19 +539,22 @@ def _train(
         )
     max_steps = cfg["max_steps"]
     if max_steps is not None and state["step"] >= max_steps and not state["finished"]:
-        return _summary(state, None, finished=False)
+        return summary(state, None, finished=False)
     run.model.train()
     while not state["finished"]:
         if state["epoch"] >= cfg["max_epochs"]:
             state["finished"], state["stop_reason"] = True, "max_epochs"
             break
         if _train_epoch(run, train_ds, max_steps):
-            return _summary(state, None, finished=False)
+            return summary(state, None, finished=False)
         _end_epoch(run, val_ds, out_dir)
     run.checkpoint()
-    model_path = _write_model(run, whitening, inputs, out_dir)
-    _write_log(state["history"], out_dir / "training_log.csv")
-    return _summary(state, model_path, finished=True)
+    model_path = out_dir / "model.pt"
+    if run.ranks.main:
+        write_model(run, whitening, inputs, out_dir)
+        write_log(state["history"], out_dir / "training_log.csv")
+    run.ranks.barrier()
+    return summary(state, model_path, finished=True)
 
 
 def _training_batches(cfg, train_shards, whitening, inputs):
@@ -561,40 +582,3 @@ def _training_batches(cfg, train_shards, whitening, inputs):
         mask_factor=cfg["mask_factor"],
         inputs=inputs,
     )
-
-
-def _summary(state, model_path, *, finished: bool) -> dict[str, Any]:
-    return {
-        "finished": finished,
-        "model": model_path,
-        "epochs": state["epoch"],
-        "step": state["step"],
-        "best_val_loss": state["best_val"],
-        "stop_reason": state.get("stop_reason"),
-    }
-
-
-def load_estimator(path, *, map_location="cpu") -> tuple[RatioEstimator, dict[str, Any]]:
-    """Rebuild the trained estimator from ``model.pt``: ``(model in eval mode, metadata)``.
-
-    ``metadata`` holds every entry of the file but the weights: ``model_card``,
-    ``whitening`` ({mean, std}), ``gamma_norm``, ``preprocess`` ({pixel_scale,
-    mask_factor}), ``config``, ``config_hash``, ``history``, ``best_epoch``, ...
-    """
-    payload = torch_load(
-        path,
-        map_location,
-        "delete it and run snakemake again to write it anew (training resumes from its "
-        "checkpoints)",
-    )
-    if payload.get("format") != "subslope.nre/1":
-        raise ValueError(
-            f"{os.fspath(path)!r} is not a subslope estimator file (format "
-            f"{payload.get('format')!r})"
-        )
-    card = payload["model_card"]
-    model = build_model(card["arch"], gamma_mean=card["gamma_mean"], gamma_std=card["gamma_std"])
-    model.load_state_dict(payload["model"])
-    model.eval()
-    meta = {k: v for k, v in payload.items() if k != "model"}
-    return model, meta

@@ -26,7 +26,7 @@ __all__ = [
 
 #: Keys of the config's ``training`` section that steer the workflow (where and with
 #: what resources the job runs), not the optimisation.
-WORKFLOW_KEYS = ("device", "threads", "gpus", "mem_mb", "runtime")
+WORKFLOW_KEYS = ("device", "threads", "gpus", "ranks", "mem_mb", "runtime")
 
 #: Keys that may differ between an interrupted run and its resumption.
 RESUME_SAFE_KEYS = frozenset(

@@ -44,6 +44,26 @@ def training_section(config: Mapping[str, Any]) -> dict[str, Any]:
     return tr
 
 
+def _launch_ranks(training, train_shards, val_shards, whitening, out_dir, ckpt_dir, device,
+                  stream, ranks: int) -> dict[str, Any]:  # fmt: skip
+    """:func:`run_training` as ``ranks`` torchrun processes; the summary from ``model.pt``."""
+    from subslope.devices import pick_device
+    from subslope.nre.checkpoints import load_estimator
+    from subslope.nre.distributed import launch
+
+    job = {
+        "training": dict(training), "train_shards": [os.fspath(p) for p in train_shards],
+        "val_shards": [os.fspath(p) for p in val_shards], "whitening": os.fspath(whitening),
+        "out_dir": os.fspath(out_dir), "ckpt_dir": os.fspath(ckpt_dir),
+        "device": device or "auto", "stream": stream,
+    }  # fmt: skip
+    launch(job, ranks, module=__name__, device_type=pick_device(device).type)
+    model_path = Path(out_dir) / "model.pt"
+    _, meta = load_estimator(model_path)
+    return {"finished": True, "model": model_path, "ranks": ranks,
+            "best_val_loss": meta["best_val_loss"], "stop_reason": meta["stop_reason"]}  # fmt: skip
+
+
 def input_transform(config: Mapping[str, Any]):
     """The estimator's input transform of a workflow config (``training.inputs`` with the
     detector's empty-pixel σ_bg and total exposure time,
@@ -189,11 +209,14 @@ def run_training(
     *,
     device: str = "auto",
     stream: Mapping[str, Any] | None = None,
+    ranks: int = 1,
 ) -> dict[str, Any]:
     """Train (resuming from ``ckpt_dir`` when possible); ``out_dir`` gets model.pt +
     training_log.csv. ``stream``: the runnable config of the streamed scene
     (``training.data: stream``; ``train_shards`` is then empty) — the training images are
-    simulated while training (:func:`training_stream`).
+    simulated while training (:func:`training_stream`). ``ranks`` > 1: as that many
+    data-parallel processes started by torchrun (:mod:`subslope.nre.distributed`), each
+    running this function.
 
     The checkpoints live in ``ckpt_dir/data-<fingerprint>`` (:func:`data_fingerprint`):
     shards whose content changed under the same paths and config start a fresh run
@@ -203,6 +226,10 @@ def run_training(
     dev = None if device in (None, "auto") else device
     key = data_fingerprint(train_shards, val_shards, whitening, stream)
     ckpt = Path(ckpt_dir) / f"data-{key}"
+    if ranks > 1 and "WORLD_SIZE" not in os.environ:  # start the ranks; each runs this
+        return _launch_ranks(
+            training, train_shards, val_shards, whitening, out_dir, ckpt_dir, dev, stream, ranks
+        )
     data = training_stream(training, stream) if stream is not None else list(train_shards)
     summary = train(training, data, list(val_shards), whitening, out_dir, ckpt, device=dev)
     if not summary["finished"]:
@@ -210,3 +237,10 @@ def run_training(
             f"training stopped before the end ({summary}); run again to resume from {ckpt_dir}"
         )
     return summary
+
+
+if __name__ == "__main__":  # one rank of a data-parallel training (torchrun)
+    import json
+    import sys
+
+    run_training(**json.loads(sys.argv[1]))
