@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import pytest
@@ -171,7 +172,7 @@ def test_cli_fetch_data(data_dir, tmp_path, capsys):
 
 
 def test_a_fetched_file_deleted_later_is_restored_with_its_stamp(data_dir, tmp_path):
-    from subslope.io.resources import FETCHED_MTIME, FETCHED_RECORDS, restore_deleted
+    from subslope.io.resources import FETCHED_RECORDS, restore_deleted
 
     entries = [e for e in res.load_registry() if e.path.startswith("psf/")]
     [psf] = res.fetch(tmp_path, mirror=data_dir, entries=entries)
@@ -179,8 +180,11 @@ def test_a_fetched_file_deleted_later_is_restored_with_its_stamp(data_dir, tmp_p
     assert restore_deleted(tmp_path, mirror=data_dir) == []  # nothing missing
     psf.unlink()
     assert restore_deleted(tmp_path, mirror=tmp_path / "nowhere") == []  # left to the job
+    record = tmp_path / FETCHED_RECORDS / "psf" / "emp_psf_f814w.fits.sha256"
+    os.utime(record, (1.5e9, 1.5e9))
     assert restore_deleted(tmp_path, mirror=data_dir) == [psf]
-    assert psf.stat().st_mtime == FETCHED_MTIME and res.sha256sum(psf) == entries[0].sha256
+    # the time stamp of the first fetch (the record's), the registry's bytes
+    assert psf.stat().st_mtime == 1.5e9 and res.sha256sum(psf) == entries[0].sha256
     # a file never fetched here (no record) is not fetched by the restore
     assert not (tmp_path / "hst").exists()
     # a record of other bytes (the registry changed since): the new file is the job's

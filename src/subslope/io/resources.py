@@ -273,11 +273,11 @@ def restore_deleted(
     """Put back, from ``mirror``, every registered file that was fetched into ``dest``
     before (it has a record) and is missing now; returns the restored paths.
 
-    The workflow calls this before it builds its graph: a restored file has the fixed
-    time stamp of every fetched file and the checksum of the registry, so the jobs that
-    read it see the file they read before and do not run again (a file fetched by a job
-    instead would make every reader run again). Files the mirror lacks are left to rule
-    fetch_data."""
+    The workflow calls this before it builds its graph: a restored file has the checksum
+    of the registry and the time stamp of its first fetch (its record's), so the jobs
+    that read it see the file they read before and do not run again (a file fetched by a
+    job instead would make every reader run again). Files the mirror lacks are left to
+    rule fetch_data."""
     dest = Path(dest)
     mirror_dir = Path(mirror) if mirror is not None else None
     restored = []
@@ -285,8 +285,10 @@ def restore_deleted(
         target = dest / entry.path
         record = dest / FETCHED_RECORDS / f"{entry.path}.sha256"
         if target.is_file():
-            if not record.is_file() and target.stat().st_mtime == FETCHED_MTIME:
-                _mark_fetched(dest, entry)  # fetched before the records were kept
+            if not record.is_file():  # fetched before the records were kept
+                _mark_fetched(dest, entry)
+                when = target.stat().st_mtime
+                os.utime(record, (when, when))
             continue
         src = mirror_dir / entry.path if mirror_dir is not None else None
         if not record.is_file() or src is None or not src.is_file():
@@ -295,6 +297,10 @@ def restore_deleted(
             continue  # the registry changed since: a new file, fetched by its job
         target.parent.mkdir(parents=True, exist_ok=True)
         _copy_from_mirror(src, target, entry)
+        # the time of the first fetch: older than every reader's outputs, newer than the
+        # fetch script (Snakemake reruns a script rule whose script is newer than its output)
+        when = record.stat().st_mtime
+        os.utime(target, (when, when))
         restored.append(target)
     return restored
 
