@@ -51,3 +51,15 @@ def test_outputs_of_an_unfinished_job_become_older_than_any_input(tmp_path):
     assert os.stat(tmp_path / "out" / "other.txt").st_mtime > 0
     assert (tmp_path / "out" / "a.txt").read_text() == "previous version"
     assert mark_unfinished_outputs(tmp_path) == []  # once is enough
+
+
+def test_a_job_whose_outputs_were_put_in_place_is_forgotten(tmp_path):
+    from subslope.logs import forget_jobs_of
+
+    job_started(["resources/hst/x.npy"], root=tmp_path)
+    job_started(["out/a.txt", "out/b.txt"], root=tmp_path)
+    assert forget_jobs_of([], root=tmp_path) == 0
+    assert forget_jobs_of(["out/a.txt"], root=tmp_path) == 0  # b.txt is still the job's
+    assert forget_jobs_of(["./resources/hst/x.npy"], root=tmp_path) == 1
+    (record,) = (tmp_path / RECORDS).glob("*.json")
+    assert "out/a.txt" in record.read_text()

@@ -22,7 +22,14 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-__all__ = ["LOG_FORMAT", "RECORDS", "job_started", "log_to_file", "mark_unfinished_outputs"]
+__all__ = [
+    "LOG_FORMAT",
+    "RECORDS",
+    "job_started",
+    "log_to_file",
+    "mark_unfinished_outputs",
+    "forget_jobs_of",
+]
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -81,3 +88,23 @@ def mark_unfinished_outputs(root: str | os.PathLike[str] = ".") -> list[Path]:
                 os.utime(path, (0, 0))
                 marked.append(path)
     return marked
+
+
+def forget_jobs_of(
+    files: Iterable[str | os.PathLike[str]], root: str | os.PathLike[str] = "."
+) -> int:
+    """Remove the records of unfinished jobs all of whose outputs are among ``files``
+    (outputs put in place by other means, such as a data file restored from the mirror,
+    whose failed fetch must not make them look stale); returns how many went."""
+    folder = Path(root) / RECORDS
+    done = {os.path.normpath(os.fspath(f)) for f in files}
+    gone = 0
+    for record in sorted(folder.glob("*.json")) if folder.is_dir() and done else []:
+        try:
+            outputs = json.loads(record.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if outputs and {os.path.normpath(o) for o in outputs} <= done:
+            record.unlink(missing_ok=True)
+            gone += 1
+    return gone

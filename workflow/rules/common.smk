@@ -36,16 +36,19 @@ if workflow.is_main_process:
 # (subslope.logs). Only the main process: a cluster job's own Snakemake leaves the
 # records of the jobs running beside it alone.
 if workflow.is_main_process:
+    # A data file deleted after it was fetched is put back here, not by fetch_data, so
+    # that none of its readers runs again (subslope.io.resources.restore_deleted); a
+    # fetch of it that failed meanwhile is done with.
+    _RESTORED = subslope.io.resources.restore_deleted(
+        config["data"]["resources_dir"], mirror=config["data"]["mirror"]
+    )
+    for _data in _RESTORED:
+        logger.info(f"{_data} was deleted; restored from the data mirror")
+    subslope.logs.forget_jobs_of(_RESTORED)
     for _stale in subslope.logs.mark_unfinished_outputs():
         logger.warning(f"{_stale}: its last job did not finish; that job runs again")
     for _tmp in subslope.io.atomic.remove_stale_temporaries_under("results"):
         logger.info(f"removed {_tmp}, left by a killed job")
-    # A data file deleted after it was fetched is put back here, not by fetch_data, so
-    # that none of its readers runs again (subslope.io.resources.restore_deleted).
-    for _data in subslope.io.resources.restore_deleted(
-        config["data"]["resources_dir"], mirror=config["data"]["mirror"]
-    ):
-        logger.info(f"{_data} was deleted; restored from the data mirror")
 
 
 # Before the first job, once the executor is known: a device this machine cannot serve
