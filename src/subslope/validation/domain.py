@@ -4,6 +4,8 @@ in the simulated distribution (``docs/simulation.md``, "Domain check").
 
 Per image (:data:`STATISTICS`):
 
+- ``theta_e``: the Einstein radius (simulated, or the catalogue's): a lens outside the
+  training prior's range sits at the edge of the simulated distribution;
 - ``white_mean``, ``white_std``: mean and std of the whitened image (training whitening)
   over the estimator's mask (``mask_factor`` θ_E about the lens centre);
 - ``flux_centre``: flux within 0.3″ of the lens centre (e⁻/s);
@@ -55,6 +57,7 @@ __all__ = [
 ]
 
 STATISTICS = (
+    "theta_e",
     "white_mean",
     "white_std",
     "flux_centre",
@@ -243,6 +246,7 @@ def _chunk_statistics(
         {
             "lens_x": centres[:, 0],
             "lens_y": centres[:, 1],
+            "theta_e": theta_e,
             "white_mean": over(inside, white, np.mean),
             "white_std": over(inside, white, np.std),
             "flux_centre": (images * (r <= CENTRE_RADIUS)).sum((1, 2)),
