@@ -258,6 +258,7 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
         "evaluate_cdm_profiles": 2,
         "calibrate_threshold": 2,
         "summarize_coverage": 1,
+        "effective_slope": 1,
         "measure_cdm_grid": 1,
         "null_tests": 1,
         "halo_free_profiles": 1,

@@ -108,11 +108,11 @@ def observation_inputs():
     return [str(OBS_FOLDER / subslope.io.observation_set.MANIFEST), *map(str, files)]
 
 
-def observation_source():
-    """What the HST stages load (subslope.io.observations.load_hst): the folder of the
-    shipped lenses, else the configured catalogue file (its folder holds the cutouts).
-    """
-    return str(OBS_FOLDER) if OBS_SHIPPED else str(OBS_CATALOG)
+def observation_source(files):
+    """What the HST stages load (subslope.io.observations.load_hst), from the rule's
+    observation_inputs(): the folder of the shipped lenses, else the configured
+    catalogue file (its folder holds the cutouts)."""
+    return os.path.dirname(files[0]) if OBS_SHIPPED else files[1]
 
 
 def cosmos_files():

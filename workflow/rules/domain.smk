@@ -21,7 +21,7 @@ rule fit_lens_light:
     resources:
         mem_mb=2000,
     params:
-        folder=observation_source(),
+        folder=lambda wildcards, input: observation_source(input.hst),
         # the values the fits depend on: a change reruns the job
         depends=lambda wildcards: {
             "instrument": config["instrument"],
@@ -78,7 +78,7 @@ rule check_domain:
         mem_mb=4000,
         runtime=60,
     params:
-        folder=observation_source(),
+        folder=lambda wildcards, input: observation_source(input.hst),
         scene=config["domain"]["scene"],
         n_images=config["domain"]["n_images"],
         # the values the statistics depend on: a change reruns the job

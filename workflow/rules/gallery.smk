@@ -18,7 +18,7 @@ rule plot_hst_gallery:
     conda:
         "../envs/subslope.yaml"
     params:
-        folder=observation_source(),
+        folder=lambda wildcards, input: observation_source(input.hst),
         run_name=config["run_name"],
         pixel_scale=config["instrument"]["pixel_scale"],
     script:

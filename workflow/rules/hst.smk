@@ -39,7 +39,7 @@ rule analyze_hst:
     resources:
         mem_mb=2000,
     params:
-        folder=observation_source(),
+        folder=lambda wildcards, input: observation_source(input.hst),
         hst=config["hst"],
         gamma_grid=GRID,
         pixel_scale=config["instrument"]["pixel_scale"],
