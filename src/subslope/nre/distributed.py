@@ -204,8 +204,8 @@ def launch(job: dict, ranks: int, *, module: str, device_type: str) -> None:
         f"--nproc-per-node={int(ranks)}", "-m", module, json.dumps(job),
     ]  # fmt: skip
     env = dict(os.environ)
-    if device_type == "cpu":  # one CPU thread per rank unless asked otherwise
-        env.setdefault("OMP_NUM_THREADS", "1")
+    if device_type == "cpu":  # one CPU thread per rank, whatever the job's environment
+        env["OMP_NUM_THREADS"] = "1"  # says: the sums then run in one order everywhere
     proc = subprocess.Popen(
         command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
