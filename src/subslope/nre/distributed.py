@@ -50,6 +50,13 @@ __all__ = [
     "launch",
 ]
 
+#: The thread counts a job's environment sets (Snakemake sets each to the job's threads):
+#: CPU ranks get 1 of each, so their results do not depend on the job's size.
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS",
+)  # fmt: skip
+
 #: Minutes a rank waits for the others in a collective before it fails (a dead rank
 #: otherwise stalls the survivors for torch's default 30 minutes).
 COLLECTIVE_TIMEOUT_MIN = 10
@@ -85,6 +92,8 @@ def setup_ranks(device: torch.device) -> Ranks:
     if size == 1:
         return Ranks()
     rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if device.type == "cpu":
+        torch.set_num_threads(1)
     if not dist.is_initialized():
         dist.init_process_group(
             "nccl" if device.type == "cuda" else "gloo",
@@ -205,7 +214,8 @@ def launch(job: dict, ranks: int, *, module: str, device_type: str) -> None:
     ]  # fmt: skip
     env = dict(os.environ)
     if device_type == "cpu":  # one CPU thread per rank, whatever the job's environment
-        env["OMP_NUM_THREADS"] = "1"  # says: the sums then run in one order everywhere
+        for name in THREAD_VARIABLES:  # says: the sums then run in one order everywhere
+            env[name] = "1"
     proc = subprocess.Popen(
         command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
