@@ -139,6 +139,8 @@ class AllReduceBatchNorm2d(nn.BatchNorm2d):
         count = torch.tensor(float(x.numel() // x.shape[1]), dtype=x.dtype)
         total = all_reduce(torch.cat([x.sum((0, 2, 3)), count.reshape(1)]))
         n = total[-1]
+        if n < 2:  # as BatchNorm2d: no variance from one value (the running one would be inf)
+            raise ValueError(f"expected more than 1 value per channel in training, got {int(n)}")
         mean = total[:-1] / n
         centred = x - mean[None, :, None, None]
         var = all_reduce((centred * centred).sum((0, 2, 3))) / n
