@@ -240,7 +240,6 @@ def run_training(
 
 
 if __name__ == "__main__":  # one rank of a data-parallel training (torchrun)
-    import json
     import sys
 
     run_training(**json.loads(sys.argv[1]))
