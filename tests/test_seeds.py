@@ -16,11 +16,14 @@ from subslope import config as C
 from subslope.campaigns.seeds import (
     ESTIMATOR_ONLY,
     SEEDS_COLUMNS,
+    SEEDS_CSV,
     seed_variants,
     seeds_markdown,
+    summary_command,
 )
 from subslope.campaigns.systematics import SystematicsError
 from subslope.plan import plan_problems
+from subslope.stages.summary_hst import meaning_lines, seeds_lines
 
 CONFIG = REPO_ROOT / "config" / "config.yaml"
 
@@ -59,18 +62,74 @@ def test_a_seed_that_cannot_run_is_refused_before_any(tmp_path, change, seeds, m
         seed_variants(campaign, seeds, root=tmp_path, folder=tmp_path, file=CONFIG)
 
 
+ROWS = [
+    {"training": "a", "seed": "derived", "hst_gamma_mle": 1.4, "hst_lower": 1.1,
+     "hst_upper": 1.7, "hst_open": "lower", "nfw_median": 1.5, "tnfw_median": 1.3,
+     "spearman_rho": 0.9, "n_max": 13, "coverage_nmax": 0.7},
+    {"training": "b", "seed": 1, "hst_gamma_mle": 1.8, "hst_lower": 1.5,
+     "hst_upper": 2.1, "hst_open": "no", "nfw_median": 1.6, "tnfw_median": 1.4,
+     "spearman_rho": 0.85, "n_max": 13, "coverage_nmax": 0.69},
+]  # fmt: skip
+
+
 def test_the_spread_sentence_counts_open_intervals():
-    rows = [
-        {"training": "a", "seed": "derived", "hst_gamma_mle": 1.4, "hst_lower": 1.1,
-         "hst_upper": 1.7, "hst_open": "lower", "nfw_median": 1.5, "tnfw_median": 1.3,
-         "spearman_rho": 0.9, "n_max": 13, "coverage_nmax": 0.7},
-        {"training": "b", "seed": 1, "hst_gamma_mle": 1.8, "hst_lower": 1.5,
-         "hst_upper": 2.1, "hst_open": "no", "nfw_median": 1.6, "tnfw_median": 1.4,
-         "spearman_rho": 0.85, "n_max": 13, "coverage_nmax": 0.69},
-    ]  # fmt: skip
-    text = seeds_markdown(rows)
+    text = seeds_markdown(ROWS)
     assert text.count("\n| ") == 2  # two rows below the header
     assert "spans 1.40–1.80 (0.40, standard deviation 0.28); 1 of 2 intervals are open" in text
+
+
+def _hst_result(path, mle, lower, upper, lower_at_edge=False, upper_at_edge=False):
+    row = {"n_images": 13, "gamma_mle": mle, "lower": lower, "upper": upper,
+           "lower_at_edge": lower_at_edge, "upper_at_edge": upper_at_edge}  # fmt: skip
+    pd.DataFrame([row]).to_csv(path, index=False)
+    return path
+
+
+def test_the_summary_shows_the_trainings_table_when_it_exists(tmp_path):
+    csv = tmp_path / "seeds.csv"
+    pd.DataFrame(ROWS).to_csv(csv, index=False)
+    text = "".join(seeds_lines(csv))
+    assert "| a | derived | 1.40 [1.10, 1.70] | lower |" in text
+    assert "| b | 1 | 1.80 [1.50, 2.10] | no |" in text
+    assert "spans 1.40–1.80" in text
+    assert "`subslope seeds` trains it again" in "".join(seeds_lines(tmp_path / "none.csv"))
+
+
+@pytest.mark.parametrize(
+    "result, seeds, verdict",
+    [
+        # open at the edge
+        ((1.4, 1.1, 1.7, True), False, "its 68% interval is open at a prior edge"),
+        # closed, but moves by 0.40 > half-width 0.15 between trainings
+        ((2.2, 2.05, 2.35, False), True, "it moves by 0.40 between 2 trainings, more than its"),
+        # closed, one training, outside the null range: a measurement
+        ((2.2, 2.05, 2.35, False), False, "the 13 lenses read γ = 2.20 [2.05, 2.35] (68%)"),
+    ],
+)
+def test_the_meaning_sentence_names_what_stands_in_the_way(tmp_path, result, seeds, verdict):
+    mle, lower, upper, at_edge = result
+    hst = _hst_result(tmp_path / "hst.csv", mle, lower, upper, lower_at_edge=at_edge)
+    null = tmp_path / "null.csv"
+    pd.DataFrame(
+        [{"scene": "null_nosub", "n_per_stack": 13, "stack_mle_p16": 1.1, "stack_mle_p84": 1.6}]
+    ).to_csv(null, index=False)
+    csv = tmp_path / "seeds.csv"
+    pd.DataFrame(ROWS).to_csv(csv, index=False)
+    text = "".join(meaning_lines(hst, null, csv if seeds else None))
+    assert verdict in text
+    assert ("not a measurement" in text) == (
+        verdict != "the 13 lenses read γ = 2.20 [2.05, 2.35] (68%)"
+    )
+    assert ("null_nosub [1.10, 1.60]" in text) == (mle < 1.6)
+
+
+def test_the_workflow_reads_the_table_where_the_command_writes_it():
+    common = (REPO_ROOT / "workflow" / "rules" / "common.smk").read_text()
+    assert f'SEEDS_CSV = "{SEEDS_CSV}"' in common
+    command = summary_command(["config/a.yaml", "b.yaml"], snakefile="Snakefile", cores=3,
+                              extra=["--rerun-triggers", "mtime"])  # fmt: skip
+    assert command[-3:] == ["results/summary.md", "--rerun-triggers", "mtime"]
+    assert command[3:8] == ["--configfile", "config/a.yaml", "--configfile", "b.yaml", "--cores"]
 
 
 def test_one_command_trains_a_seed_on_the_campaigns_shards(tiny_run, tmp_path):

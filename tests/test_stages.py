@@ -383,6 +383,11 @@ def test_summary_sections(tmp_path):
     assert "moves the stack γ_MLE of nfw a = 1 by +0.100 ± 0.000" in text
     assert "**The subhalos of tnfw a = 1 are not seen by the estimator**" in text
     assert "null_nosub outside [1.10, 1.70]; null_nosub_los inside [2.40, 2.60]" in text
+    assert (
+        "γ_MLE = 2.51 is not a measurement of the subhalos' slope, because it lies inside the "
+        "16–84% range of the subhalo-free null stacks (null_nosub_los [2.40, 2.60])."
+    ) in text
+    assert "`subslope seeds` trains it again" in text  # no table of trainings yet
     folder = out.parent
     res = pd.read_csv(folder / "hst_result.csv")
     assert res["gamma_mle"].iloc[0] == 2.51 and res["threshold_n"].iloc[0] == 13

@@ -490,6 +490,10 @@ def visibility_on():
     return bool(VISIBILITY_JOBS)
 
 
+# The table of trainings that `subslope seeds` writes (subslope.campaigns.seeds.SEEDS_CSV).
+SEEDS_CSV = "results/seeds/seeds.csv"
+
+
 def summary_inputs(wildcards):
     inputs = {}
     if null_tests_on():
@@ -513,4 +517,6 @@ def summary_inputs(wildcards):
         inputs["trend"] = rules.plot_validation.output.trend
     if STAGE_ON["signal_budget"]:
         inputs["signal_budget"] = rules.summarize_signal_budget.output.csv
+    if STAGE_ON["hst"] and os.path.exists(SEEDS_CSV):
+        inputs["seeds"] = SEEDS_CSV  # `subslope seeds` writes it; no rule makes it
     return inputs

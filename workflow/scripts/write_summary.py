@@ -28,6 +28,7 @@ try:
         bias_csv=inputs.get("nsub_bias"),
         visibility_csv=inputs.get("cdm_visibility"),
         signal_csv=inputs.get("signal_budget"),
+        seeds_csv=inputs.get("seeds"),
         trend=trend,
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,

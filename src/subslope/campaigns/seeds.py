@@ -9,23 +9,24 @@ estimator (gallery, domain check, signal budget, halo-free and visibility null t
 scene examples) are switched off in it. The table puts the campaign's own result beside
 the seeds': the combined HST γ_MLE with its calibrated interval, the a = 1 CDM readings,
 Spearman's ρ of the EPL test stacks and the coverage at the largest N, and the spread of
-the HST reading over all trainings.
+the HST reading over all trainings. The campaign's ``results/summary.md`` shows the table
+when :data:`SEEDS_CSV` exists; ``subslope seeds`` brings the summary up to date after it.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from subslope import config as _config
 from subslope.campaigns.systematics import SystematicsError, Variant, _read_csv, variant_config
 from subslope.io.atomic import write_csv, write_text
 from subslope.plan import plan_problems
+from subslope.stages.summary_hst import seeds_markdown
 
 __all__ = [
     "SEEDS_COLUMNS",
@@ -34,6 +35,8 @@ __all__ = [
     "seed_row",
     "seeds_table",
     "seeds_markdown",
+    "SEEDS_CSV",
+    "summary_command",
 ]
 
 #: What a seed's campaign leaves out: the stages that do not read the estimator.
@@ -42,6 +45,9 @@ ESTIMATOR_ONLY: dict[str, Any] = {
     "null_tests": {"halo_free_sets": 0, "cdm_visibility": False},
     "simulation": {"scene_examples": False},
 }
+
+#: Where the campaign's summary looks for the table of trainings (rule write_summary).
+SEEDS_CSV = "results/seeds/seeds.csv"
 
 #: Columns of ``seeds.csv``, one row per training.
 SEEDS_COLUMNS = (
@@ -145,26 +151,24 @@ def seeds_table(
     return rows, text
 
 
-def seeds_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
-    """The table of :func:`seeds_table` and one sentence on the spread of the HST reading."""
-    lines = [
-        "| training | seed | HST γ_MLE [68%] | open | NFW a=1 | tNFW a=1 | ρ | coverage N=max |",
-        "|---|---|---|---|---|---|---|---|",
+def summary_command(
+    files: Sequence[str],
+    *,
+    snakefile: str | os.PathLike[str],
+    cores: int,
+    extra: Sequence[str] = (),
+) -> list[str]:
+    """The Snakemake call that brings the campaign's own ``results/summary.md`` up to date
+    once :data:`SEEDS_CSV` is written (the summary reads the table when it exists)."""
+    exe = Path(sys.executable).with_name("snakemake")
+    configs = [a for f in files for a in ("--configfile", str(f))]
+    return [
+        str(exe) if exe.exists() else "snakemake",
+        "--snakefile",
+        str(Path(snakefile).resolve()),
+        *configs,
+        "--cores",
+        str(int(cores)),
+        "results/summary.md",
+        *extra,
     ]
-    for r in rows:
-        lines.append(
-            f"| {r['training']} | {r['seed']} | {r['hst_gamma_mle']:.2f} "
-            f"[{r['hst_lower']:.2f}, {r['hst_upper']:.2f}] | {r['hst_open']} | "
-            f"{r['nfw_median']:.2f} | {r['tnfw_median']:.2f} | {r['spearman_rho']:.2f} | "
-            f"{r['coverage_nmax']:.2f} (N={r['n_max']}) |"
-        )
-    g = np.array([r["hst_gamma_mle"] for r in rows], dtype=np.float64)
-    n_open = sum(r["hst_open"] != "no" for r in rows)
-    sd = f", standard deviation {np.std(g, ddof=1):.2f}" if g.size > 1 else ""
-    lines += [
-        "",
-        f"Over {g.size} trainings the combined HST γ_MLE spans {g.min():.2f}–{g.max():.2f}"
-        f" ({g.max() - g.min():.2f}{sd}); {n_open} of {g.size} intervals are open at a "
-        "prior edge.",
-    ]
-    return "\n".join(lines) + "\n"

@@ -5,7 +5,8 @@ systematics [--config C ...] [--cores N] [--only NAME ...] [--table-only] [-- SN
     sharing the data and the shard cache) and write the systematics table and figure.
 seeds [--config C ...] [--seeds K ...] [--cores N] [--table-only] [-- SNAKEMAKE ARGS]
     Train the campaign's estimator again with other seeds (each a campaign in its own
-    folder, sharing the data and the shard cache) and write the spread of the readings.
+    folder, sharing the data and the shard cache), write the spread of the readings and
+    bring the campaign's results/summary.md up to date with it.
 cache du|prune [--config C ...]
     What the shard cache holds and what uses it; remove what no config uses.
 cluster-jobs [--total] -- SNAKEMAKE ARGS
@@ -95,7 +96,7 @@ def _systematics(args: argparse.Namespace) -> int:
 def _seeds(args: argparse.Namespace) -> int:
     import subprocess
 
-    from subslope.campaigns.seeds import seed_variants, seeds_table
+    from subslope.campaigns.seeds import SEEDS_CSV, seed_variants, seeds_table, summary_command
     from subslope.campaigns.systematics import SystematicsError, run_variant
     from subslope.config import ConfigError, read_files
 
@@ -125,6 +126,15 @@ def _seeds(args: argparse.Namespace) -> int:
         return 1
     print(text, end="")
     print(f"wrote {out}/seeds.csv and seeds.md")
+    if args.table_only or out.resolve() != Path(SEEDS_CSV).parent.resolve():
+        return 0
+    command = summary_command(files, snakefile=args.snakefile, cores=args.cores, extra=extra)
+    try:
+        subprocess.run(command, check=True)
+    except subprocess.CalledProcessError as exc:
+        print(f"error: updating results/summary.md failed (exit {exc.returncode})", file=sys.stderr)
+        return 1
+    print("results/summary.md holds the table")
     return 0
 
 

@@ -14,9 +14,16 @@ import numpy as np
 from subslope.io.atomic import write_csv, write_json, write_text
 from subslope.stages.calibrate import COVERAGE_COLUMNS
 from subslope.stages.cdm_grid import cdm_band
+from subslope.stages.markdown import fmt, md_table
 from subslope.stages.null_tests import NULL_COLUMNS
 from subslope.stages.null_tests.halo_free import BIAS_COLUMNS, HALO_FREE_COLUMNS, SHEET_COLUMNS
 from subslope.stages.null_tests.visibility import VISIBILITY_COLUMNS
+from subslope.stages.summary_hst import (
+    hst_section,
+    leave_one_out_lines,
+    meaning_lines,
+    seeds_lines,
+)
 from subslope.stats.calibration import coverage_sigma, overconfident
 
 __all__ = ["SUMMARY_SECTIONS", "read_benchmarks", "write_run_record", "write_summary"]
@@ -53,26 +60,6 @@ def read_benchmarks(paths_by_stage: Mapping[str, Sequence]) -> list[dict[str, An
     return rows
 
 
-def _fmt(x, digits: int = 3) -> str:
-    try:
-        return "n/a" if x is None or not math.isfinite(float(x)) else f"{float(x):.{digits}f}"
-    except (TypeError, ValueError):
-        return str(x)
-
-
-def _md_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
-    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
-    body = "".join(
-        "| "
-        + " | ".join(
-            _fmt(r.get(c)) if isinstance(r.get(c), float) else str(r.get(c, "")) for c in columns
-        )
-        + " |\n"
-        for r in rows
-    )
-    return head + body
-
-
 #: Section headings of summary.md, in order.
 SUMMARY_SECTIONS = (
     "Configuration",
@@ -86,93 +73,6 @@ SUMMARY_SECTIONS = (
     "Estimator trend",
     "Run time per stage",
 )
-
-
-def _hst_section(folder: Path, hst_csv, null_csv=None) -> list[str]:
-    import pandas as pd
-
-    if not hst_csv:
-        write_csv(
-            folder / "hst_result.csv",
-            [],
-            [
-                "n_images",
-                "gamma_mle",
-                "lower",
-                "upper",
-                "minus",
-                "plus",
-                "threshold",
-                "threshold_n",
-                "lower_at_edge",
-                "upper_at_edge",
-                "multimodal",
-            ],
-        )
-        return ["Stage `hst` not run.\n"]
-    hst = pd.read_csv(hst_csv)
-    comb = hst[hst["system"] == "combined"].iloc[0]
-    row = {
-        "n_images": int(comb["n_images"]),
-        "gamma_mle": float(comb["mle"]),
-        "lower": float(comb["lower"]),
-        "upper": float(comb["upper"]),
-        "minus": float(comb["mle"] - comb["lower"]),
-        "plus": float(comb["upper"] - comb["mle"]),
-        "threshold": float(comb["threshold"]),
-        "threshold_n": int(comb["threshold_n"]),
-        "lower_at_edge": bool(comb["lower_at_edge"]),
-        "upper_at_edge": bool(comb["upper_at_edge"]),
-        "multimodal": bool(comb["multimodal"]),
-    }
-    write_csv(folder / "hst_result.csv", [row])
-    note = []
-    if row["threshold_n"] != row["n_images"]:
-        note.append(
-            f"threshold from N = {row['threshold_n']}, NOT calibrated for N = {row['n_images']}"
-        )
-    if row["lower_at_edge"] or row["upper_at_edge"]:
-        note.append("open at the prior edge")
-    if row["multimodal"]:
-        note.append("hull of several regions")
-    singles = hst[hst["system"] != "combined"].to_dict("records")
-    return [
-        f"Combined stack of {row['n_images']} HST lenses: γ_MLE = {row['gamma_mle']:.3f} "
-        f"(−{row['minus']:.3f}, +{row['plus']:.3f}) at {_fmt(row['threshold'])} "
-        f"(68% interval [{row['lower']:.3f}, {row['upper']:.3f}])"
-        + (f"; {'; '.join(note)}" if note else "")
-        + ".\n",
-        *_against_null_stacks(row["gamma_mle"], row["n_images"], null_csv),
-        _md_table(
-            singles,
-            ["system", "mle", "lower", "upper", "lower_at_edge", "upper_at_edge"]
-            + (["inside_domain"] if "inside_domain" in hst.columns else []),
-        ),
-    ]
-
-
-def _against_null_stacks(mle: float, n_images: int, null_csv) -> list[str]:
-    """Where the HST combined γ_MLE falls among the stack γ_MLE of the subhalo-free null
-    scenes stacked as many images deep (``null_tests.csv``): inside their 16–84% range
-    it does not tell the HST lenses from images without subhalos."""
-    import pandas as pd
-
-    if not null_csv:
-        return []
-    null = pd.read_csv(null_csv)
-    null = null[null["n_per_stack"] == n_images]
-    if not len(null):
-        return []
-    parts = [
-        f"{r.scene} {'inside' if r.stack_mle_p16 <= mle <= r.stack_mle_p84 else 'outside'} "
-        f"[{r.stack_mle_p16:.2f}, {r.stack_mle_p84:.2f}]"
-        for r in null.itertuples()
-    ]
-    return [
-        f"Against the {n_images}-image stacks of the subhalo-free null scenes (16–84% of "
-        f"their γ_MLE): {'; '.join(parts)}. Inside that range the combined γ_MLE does not "
-        "tell the HST lenses from images without subhalos.\n"
-    ]
 
 
 #: Columns of null_tests.csv left out of the summary's table (in the CSV beside it).
@@ -193,7 +93,7 @@ def _null_section(folder: Path, null_csv) -> list[str]:
         "under the training prior an image without visible perturbations is likelier at "
         "low γ, so even an ideal estimator's profile of it slopes (the pass criterion is "
         "the halo-free null test below):\n",
-        _md_table(table.to_dict("records"), [c for c in NULL_COLUMNS if c not in NULL_HIDDEN]),
+        md_table(table.to_dict("records"), [c for c in NULL_COLUMNS if c not in NULL_HIDDEN]),
     ]
 
 
@@ -232,10 +132,10 @@ def _halo_free_section(folder: Path, halo_free_csv, bias_csv) -> list[str]:
         "`sheets_removed`: removed too), same lens, source, light and noise. Passing "
         "needs |ρ| ≤ 2/√(n − 1) for single images and stacks and a stack slope within "
         f"2 SE of 0. The test {verdict}\n",
-        _md_table(table.to_dict("records"), list(HALO_FREE_COLUMNS)),
+        md_table(table.to_dict("records"), list(HALO_FREE_COLUMNS)),
         *_sheet_lines(folder, Path(halo_free_csv).with_name("sheet_channel.csv")),
         "\nBias γ_MLE − γ of the single original images in bins of N_sub:\n",
-        _md_table(bias.to_dict("records"), list(BIAS_COLUMNS)),
+        md_table(bias.to_dict("records"), list(BIAS_COLUMNS)),
     ]
 
 
@@ -256,9 +156,9 @@ def _sheet_lines(folder: Path, sheet_csv: Path) -> list[str]:
     inside = str(rest["within"]).lower() == "true"
     text = (
         "\nA sheet is minus its members' mean κ, so it follows γ: "
-        + "; ".join(f"{r['quantity']} against the label ρ = {_fmt(r['rho'])}" for r in follow)
+        + "; ".join(f"{r['quantity']} against the label ρ = {fmt(r['rho'])}" for r in follow)
         + f". With {rest['given']} held fixed, the sheets-kept stack γ_MLE against the "
-        f"label has partial ρ = {_fmt(rest['rho'])} (bound ±{_fmt(rest['bound'])}): "
+        f"label has partial ρ = {fmt(rest['rho'])} (bound ±{fmt(rest['bound'])}): "
     )
     text += (
         "nothing of the label is left once the sheets' amplitudes are known, so what the "
@@ -268,7 +168,7 @@ def _sheet_lines(folder: Path, sheet_csv: Path) -> list[str]:
         else "the label still reaches the kept-sheet images beyond the sheets' amplitudes "
         "(their centres, or the placement).\n"
     )
-    return [text, _md_table(rows, list(SHEET_COLUMNS))]
+    return [text, md_table(rows, list(SHEET_COLUMNS))]
 
 
 def _domain_section(domain_csv) -> list[str]:
@@ -286,7 +186,7 @@ def _domain_section(domain_csv) -> list[str]:
         "figures/domain_check.png).\n"
     ]
     if out:
-        lines.append(_md_table(out, ["system", "outside"]))
+        lines.append(md_table(out, ["system", "outside"]))
     spread = Path(domain_csv).with_name("spread.csv")
     if spread.is_file():
         widths = pd.read_csv(spread).dropna(subset=["width_ratio"])
@@ -325,7 +225,7 @@ def _cdm_section(
     write_csv(folder / "cdm_prediction.csv", rows, columns)
     return [
         "Median and 16–84% range of the stack γ_MLE of simulated CDM sets at a = 1:\n",
-        _md_table(rows, columns) if rows else "no a = 1 sets\n",
+        md_table(rows, columns) if rows else "no a = 1 sets\n",
         *_reference_lines(cdm),
         *_visibility_lines(folder, visibility_csv),
     ]
@@ -342,7 +242,7 @@ def _reference_lines(cdm) -> list[str]:
         "median over the sets of their subhalos' effective slope (the slope of each "
         'subhalo\'s deflection between 0.04" and 0.4", weighted by its squared '
         "deflection; docs/physics.md), and `distance` = median − reference:\n",
-        _md_table(cdm[columns].to_dict("records"), columns),
+        md_table(cdm[columns].to_dict("records"), columns),
         f"\nThe readings lie {cdm['distance'].abs().min():.2f}–{cdm['distance'].abs().max():.2f} "
         f"from the reference (farthest: {far['scene']} a = {float(far['multiplier']):g}, "
         f"{float(far['distance']):+.2f}).\n",
@@ -384,7 +284,7 @@ def _visibility_lines(folder: Path, visibility_csv) -> list[str]:
         "\nThe same sets re-rendered without their subhalos (line-of-sight halos, "
         "lens, source, light and noise seeds as stored; `shift`: the stack γ_MLE with the "
         f"subhalos minus without, per set). {verdict}\n",
-        _md_table(table.to_dict("records"), list(VISIBILITY_COLUMNS)),
+        md_table(table.to_dict("records"), list(VISIBILITY_COLUMNS)),
     ]
 
 
@@ -414,7 +314,7 @@ def _calibration_section(folder: Path, calibration_csv) -> list[str]:
         "(and with Wilks' χ²₁ threshold). `coverage_err` is the binomial error of the "
         "held-out stacks alone; `coverage_sigma` adds the scatter of the threshold set by "
         "the calibration stacks, and is the σ of the 2σ test:\n",
-        _md_table(
+        md_table(
             table.to_dict("records"),
             [
                 "n_images",
@@ -455,26 +355,7 @@ def _response_lines(folder: Path, signal_csv, visibility_csv, halo_free_csv, run
         "EPL test sets as the difference of medians against their halo-free re-renders; "
         "figures/response.png). Where the ideal observer's Δχ² is large and the shift is "
         "zero, the estimator, not the data, is the limit:\n",
-        _md_table(table.to_dict("records"), list(RESPONSE_COLUMNS)),
-    ]
-
-
-def _leave_one_out_lines(loo_csv) -> list[str]:
-    """The combined γ_MLE with each HST lens left out (results/analyze_hst/leave_one_out.csv)."""
-    import pandas as pd
-
-    if not loo_csv:
-        return []
-    table = pd.read_csv(loo_csv)
-    if not len(table):
-        return []
-    top = table.loc[table["shift"].abs().idxmax()]
-    return [
-        "\nThe combined stack with each lens left out (`shift`: its γ_MLE minus that of "
-        f"all lenses; threshold of {int(table['n_images'].iloc[0])}-image stacks). The "
-        f"largest shift comes from leaving out {top['left_out']} ({top['shift']:+.3f}); "
-        "SDSSJ0946+1006 is the one lens with a published dense subhalo:\n",
-        _md_table(table.to_dict("records"), ["left_out", "mle", "lower", "upper", "shift"]),
+        md_table(table.to_dict("records"), list(RESPONSE_COLUMNS)),
     ]
 
 
@@ -493,7 +374,7 @@ def _signal_section(signal_csv) -> list[str]:
         "fixed, so both are upper bounds); `stack_refit` is the refitted Δχ² of a stack "
         "(the stack size × the median). Δχ² ≈ 1 is invisible, ≳ 25 an individual "
         "detection (figures/signal_budget.png):\n",
-        _md_table(table.to_dict("records"), list(table.columns)),
+        md_table(table.to_dict("records"), list(table.columns)),
     ]
 
 
@@ -504,7 +385,7 @@ def _trend_section(folder: Path, trend: Mapping[str, float] | None) -> list[str]
     write_csv(folder / "trend.csv", [dict(trend)])
     return [
         f"Spearman ρ between the true γ and the stack γ_MLE of the EPL test sets: "
-        f"ρ = {_fmt(trend.get('rho'))} (p = {float(trend.get('p_value', float('nan'))):.3g}, "
+        f"ρ = {fmt(trend.get('rho'))} (p = {float(trend.get('p_value', float('nan'))):.3g}, "
         f"{int(trend.get('n', 0))} sets).\n"
     ]
 
@@ -517,7 +398,7 @@ def _runtime_section(folder: Path, benchmarks: Mapping[str, Sequence] | None) ->
         "Summed job wall time per stage (Snakemake benchmark files; jobs run in parallel, so the "
         "sum "
         "exceeds the wall time of the run):\n",
-        _md_table(rows, columns),
+        md_table(rows, columns),
     ]
 
 
@@ -537,6 +418,7 @@ def write_summary(
     bias_csv=None,
     visibility_csv=None,
     signal_csv=None,
+    seeds_csv=None,
     trend: Mapping[str, float] | None = None,
     benchmarks: Mapping[str, Sequence] | None = None,
     nfw_scene: str = "nfw",
@@ -545,7 +427,8 @@ def write_summary(
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
     ``coverage.csv``, ``null_tests.csv``, ``halo_free.csv``, ``nsub_bias.csv``,
     ``cdm_visibility.csv``, ``trend.csv`` and ``stage_runtime.csv`` (``signal_csv``: the
-    signal-budget table, shown as it is). Any input may be
+    signal-budget table, shown as it is; ``seeds_csv``: ``subslope seeds``'s table of the
+    trainings, if any). Any input may be
     None (its stage was off): the section then says so."""
     out_md = Path(out_md)
     folder = out_md.parent
@@ -556,7 +439,10 @@ def write_summary(
     sections = [
         ["\n".join(items) + "\n"],
         _domain_section(domain_csv),
-        _hst_section(folder, hst_csv, null_csv) + _leave_one_out_lines(loo_csv),
+        hst_section(folder, hst_csv, null_csv)
+        + leave_one_out_lines(loo_csv)
+        + seeds_lines(seeds_csv)
+        + meaning_lines(folder / "hst_result.csv", null_csv, seeds_csv),
         _signal_section(signal_csv)
         + _response_lines(folder, signal_csv, visibility_csv, halo_free_csv, run_name),
         _cdm_section(folder, cdm_csv, (nfw_scene, tnfw_scene), visibility_csv),
