@@ -207,8 +207,24 @@ def test_cdm_shards(config, scene, tmp_path):
         assert s.attrs["subhalo_profile"] == scene and s.attrs["los_profile"] == "nfw"
         assert {"mass", "c200", "x", "y"} == set(s.subhalos) - {"counts"}  # r_s, r_t derived
         assert "c200" in s.los and "amp" not in s.los
-        assert s.attrs["multiplier"] == 1.0 and s.attrs["seed_spawn_key"][2] == 0
+        assert s.attrs["multiplier"] == 1.0 and len(s.attrs["seed_spawn_key"]) == 2
     np.testing.assert_array_equal(rerender.rerender(path, 1), shards.open_shard(path).images[1])
+    # every multiplier draws the same sets: only the concentrations differ, by the factor a
+    grid = copy.deepcopy(config)
+    grid["simulation"]["multipliers"] = [1.0, 4.0]
+    other = simulate.simulate_shard(
+        grid, scene, 0, tmp_path / "a4.h5", multiplier=4.0, progress=False
+    )
+    with shards.open_shard(path) as s, shards.open_shard(other) as t:
+        for key in set(s.params) - {"c_multiplier"}:
+            np.testing.assert_array_equal(s.params[key][()], t.params[key][()], err_msg=key)
+        for key in ("counts", "mass", "x", "y"):
+            np.testing.assert_array_equal(s.subhalos[key][()], t.subhalos[key][()])
+        np.testing.assert_allclose(t.subhalos["c200"][()], 4.0 * s.subhalos["c200"][()], rtol=1e-6)
+        for key in set(s.los):
+            np.testing.assert_array_equal(s.los[key][()], t.los[key][()], err_msg=key)
+        assert np.all(t.params["c_multiplier"][()] == 4.0)
+        assert not np.array_equal(s.images[()], t.images[()])
 
 
 def test_subhalo_free_images_remove_the_subhalos_and_nothing_else(config, tmp_path):

@@ -101,10 +101,9 @@ def shard_job_config(
 
     The validated sections that determine its images: ``seed``, ``instrument``,
     ``cosmology``, the scene's spec, its ``simulation.scenes`` entry, ``simulation.sources``
-    and the render settings without :data:`RUN_ONLY_RENDER_KEYS`; for a CDM scene the
-    multipliers up to and including ``multiplier`` (its position in the list sets the
-    shard's seed, so appending a multiplier changes no existing job; null for the other
-    scenes); whether the lens light is fitted (``simulation.light_fit`` resolved) and the
+    and the render settings without :data:`RUN_ONLY_RENDER_KEYS`; for a CDM scene its own
+    multiplier alone (every multiplier's shard shares the seed, so adding or removing
+    another multiplier changes no existing job; null for the other scenes); whether the lens light is fitted (``simulation.light_fit`` resolved) and the
     lens-centre settings the fit starts from. Every stage is off
     (:func:`with_stages_off`), so the job's own validation checks only what the job
     uses. Passed to the job as a Snakemake param without its ``stages`` (which name no
@@ -118,8 +117,7 @@ def shard_job_config(
     kept: list[float] | None = None
     if mults is not None and multiplier is not None:
         a = float(multiplier)
-        index = next(k for k, m in enumerate(mults) if abs(m - a) <= 1e-12 * max(abs(a), 1.0))
-        kept = list(mults[: index + 1])
+        kept = [next(m for m in mults if abs(m - a) <= 1e-12 * max(abs(a), 1.0))]
     return {
         "seed": config["seed"],
         "instrument": config["instrument"],

@@ -136,9 +136,9 @@ SIM_SCENES = sorted({job["scene"] for job in SHARD_JOBS})
 def simulation_hash(scene):
     """Hash of the config values that determine the images of `scene`'s shards.
 
-    The list of multipliers is left out: a shard's seed depends on its multiplier's
-    position in the list, so APPENDING a multiplier leaves the existing CDM shards (and
-    their profiles) valid and only the new multiplier is simulated and evaluated.
+    The list of multipliers is left out: every multiplier's shards share their seed, so
+    adding a multiplier leaves the existing CDM shards (and their profiles) valid and
+    only the new multiplier is simulated and evaluated.
     """
     if scene not in _SIM_HASH:  # cached: the config is validated again for every call
         sections = subslope.simulation.resolve.simulation_sections(config, scene)

@@ -2,11 +2,14 @@
 
 :func:`simulate_shard` produces one shard file (layout in :mod:`subslope.io.shards`):
 
-1. **Seeds.** A numpy ``SeedSequence(entropy=config seed, spawn_key=(scene id, shard
-   [, multiplier index]))`` per shard (scene id: first 8 bytes of the SHA-256 of the
-   scene name), spawned into five independent streams: macro, sources, subhalos, LoS,
-   noise. Subhalos and LoS get one child stream *per image* and the noise one torch
-   seed per image (stored), so the draws do not depend on the batch size.
+1. **Seeds.** A numpy ``SeedSequence(entropy=config seed, spawn_key=(scene id, shard))``
+   per shard (scene id: first 8 bytes of the SHA-256 of the scene name), spawned into
+   five independent streams: macro, sources, subhalos, LoS, noise. Subhalos and LoS get
+   one child stream *per image* and the noise one torch seed per image (stored), so the
+   draws do not depend on the batch size. A CDM scene's shards of every concentration
+   multiplier share their seed: the same lenses, sources, subhalo masses and positions,
+   LoS halos and noise, only the concentrations scaled by a (common random numbers, so
+   figure 4 compares multipliers on the same sets).
 2. **Macro parameters** of all images (:func:`subslope.simulation.macro.sample_macro`).
 3. **Sources**: a COSMOS galaxy of the scene's split per image (uniform), moved to the
    image's z_source (:func:`subslope.io.cosmos.place_at_redshift`), optionally
@@ -90,12 +93,13 @@ def scene_id(name: str) -> int:
 
 
 def shard_seed_sequence(
-    seed: int, scene: str, shard: int, multiplier_index: int | None = None
+    seed: int, scene: str, shard: int, extra: int | None = None
 ) -> np.random.SeedSequence:
     """The SeedSequence of one shard: entropy = global seed, spawn key = (scene id,
-    shard[, multiplier index])."""
+    shard[, extra]); shards use (scene id, shard), the same for every multiplier of a CDM
+    scene."""
     key = (scene_id(scene), int(shard)) + (
-        () if multiplier_index is None else (int(multiplier_index),)
+        () if extra is None else (int(extra),)
     )
     return np.random.SeedSequence(entropy=int(seed), spawn_key=key)
 
@@ -401,8 +405,8 @@ def simulate_shard(
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
-    n, spec, m_index, multiplier = _shard_request(config, scene, shard, multiplier)
-    ss = shard_seed_sequence(config["seed"], scene, shard, m_index)
+    n, spec, _, multiplier = _shard_request(config, scene, shard, multiplier)
+    ss = shard_seed_sequence(config["seed"], scene, shard)
     label = "" if multiplier is None else f" (a = {multiplier:g})"
     log.info("simulating %s shard %d%s: %d images -> %s", scene, shard, label, n, out_path)
     out = simulate_images(config, scene, n, ss, multiplier=multiplier, progress=progress)
