@@ -103,8 +103,9 @@ def shard_job_config(
     ``cosmology``, the scene's spec, its ``simulation.scenes`` entry, ``simulation.sources``
     and the render settings without :data:`RUN_ONLY_RENDER_KEYS`; for a CDM scene its own
     multiplier alone (every multiplier's shard shares the seed, so adding or removing
-    another multiplier changes no existing job; null for the other scenes); whether the lens light is fitted (``simulation.light_fit`` resolved) and the
-    lens-centre settings the fit starts from. Every stage is off
+    another multiplier changes no existing job; null for the other scenes); whether the
+    lens light is fitted (``simulation.light_fit`` resolved) and the lens-centre settings
+    the fit starts from. Every stage is off
     (:func:`with_stages_off`), so the job's own validation checks only what the job
     uses. Passed to the job as a Snakemake param without its ``stages`` (which name no
     image), so a change of any of these values reruns exactly the shards it affects and
