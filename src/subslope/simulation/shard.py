@@ -98,9 +98,7 @@ def shard_seed_sequence(
     """The SeedSequence of one shard: entropy = global seed, spawn key = (scene id,
     shard[, extra]); shards use (scene id, shard), the same for every multiplier of a CDM
     scene."""
-    key = (scene_id(scene), int(shard)) + (
-        () if extra is None else (int(extra),)
-    )
+    key = (scene_id(scene), int(shard)) + (() if extra is None else (int(extra),))
     return np.random.SeedSequence(entropy=int(seed), spawn_key=key)
 
 
