@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from subslope.physics.instrument import correlate_noise, noise_kernel_weight
-from subslope.stats.signal import delta_chi2, refit_delta_chi2, whiten
+from subslope.stats.signal import delta_chi2, gauss_newton_refit, refit_delta_chi2, whiten
 
 N = 64
 
@@ -81,6 +81,50 @@ def test_refit_absorbs_what_the_smooth_model_can_and_keeps_what_it_cannot():
     # degenerate (zero) columns change nothing
     padded = np.concatenate([jac, np.zeros((2, N, N))])
     assert refit_delta_chi2(bump, padded, sigma, mask) == pytest.approx(refit, rel=1e-9)
+
+
+def _blob(cx, cy, amp=1.0, width=3.0):
+    x, y = _grid()
+    return amp * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * width**2))
+
+
+def test_full_refit_reaches_the_minimum_a_linearised_one_cannot():
+    """A blob moved by 2.5 px, refitted by the blob's position (steps of 0.1 px): the model
+    holds the data exactly, so the full refit leaves ~0; the first-order fit of a 2.5 px
+    shift (almost a blob width) leaves a large part. A model linear in its parameters is
+    fitted in one step, and then both agree with refit_delta_chi2."""
+    sigma = np.full((N, N), 0.05)
+    mask = np.ones((N, N), dtype=bool)
+    data = _blob(2.5, -1.0)
+
+    def residual(u):
+        return whiten(data - _blob(0.1 * u[0], 0.1 * u[1]), sigma)[mask]
+
+    fixed = float(np.sum(residual(np.zeros(2)) ** 2))
+    linear, full, done = gauss_newton_refit(residual, 2, iterations=20)
+    assert full < 1e-6 * fixed and full <= linear < fixed and linear > 0.05 * fixed
+    assert 1 < done <= 20
+    # one iteration: the linearised refit and nothing more
+    one = gauss_newton_refit(residual, 2, iterations=1)
+    assert one[0] == pytest.approx(linear, rel=1e-12) and one[2] == 1 and one[1] < fixed
+    # linear in the parameters (amplitudes of fixed shapes): exact in one step
+    shapes = np.stack([_blob(0, 0), _blob(5, 5, width=2.0)])
+    target = 0.7 * shapes[0] - 0.2 * shapes[1] + _blob(-9, 4, 0.3, 1.0)
+
+    def linear_residual(u):
+        return whiten(target - 0.01 * np.tensordot(u, shapes, axes=1), sigma)[mask]
+
+    lin, full_lin, _ = gauss_newton_refit(linear_residual, 2, iterations=6)
+    expected = refit_delta_chi2(target, shapes, sigma, mask)
+    assert lin == pytest.approx(expected, rel=1e-8) and full_lin == pytest.approx(
+        expected, rel=1e-8
+    )
+    # nothing to refit: the fixed-model value
+    assert gauss_newton_refit(lambda u: residual(np.zeros(2)), 0) == pytest.approx(
+        (fixed, fixed, 0)
+    )
+    with pytest.raises(ValueError, match="iterations"):
+        gauss_newton_refit(residual, 2, iterations=0)
 
 
 def test_bad_input_is_refused():

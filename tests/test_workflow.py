@@ -425,7 +425,8 @@ def test_tiny_campaign_signal_budget_and_leave_one_out(tiny_run):
         "null_nosub",
         "null_nosub_los",
     }
-    assert np.isfinite(rows[["dchi2_fixed", "dchi2_refit"]]).all().all()
+    assert np.isfinite(rows[["dchi2_fixed", "dchi2_linear", "dchi2_refit"]]).all().all()
+    assert (rows["dchi2_linear"] <= rows["dchi2_fixed"] * (1 + 1e-9)).all()
     assert (rows["dchi2_refit"] <= rows["dchi2_fixed"] * (1 + 1e-9)).all()
     assert (rows["dchi2_refit"] >= 0).all()
     nulls = rows[rows["scene"].str.startswith("null")]

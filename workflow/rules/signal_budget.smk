@@ -1,7 +1,8 @@
 # Stage: signal_budget. The ideal observer's signal of every simulated scene: the first
 # signal_budget.images images of shard 0 re-rendered noise-free with and without their
-# subhalos, and the Delta chi^2 of the difference with the smooth model fixed and after a
-# linearised refit (subslope.stages.signal_budget). The validation scene is left out.
+# subhalos, and the Delta chi^2 of the difference with the smooth model fixed, after a
+# linearised refit and after a full refit (subslope.stages.signal_budget). The
+# validation scene is left out.
 
 
 rule signal_budget:
@@ -22,6 +23,7 @@ rule signal_budget:
     params:
         images=config["signal_budget"]["images"],
         mask_factor=config["training"]["mask_factor"],
+        iterations=config["signal_budget"]["refit_iterations"],
     script:
         "../scripts/signal_budget.py"
 

@@ -19,6 +19,7 @@ try:
         scene=snakemake.wildcards.scene,
         multiplier=snakemake.wildcards.get("multiplier"),
         cosmos=[str(f) for f in cosmos_folders(snakemake.config)],
+        iterations=snakemake.params.iterations,
     )
 except Exception:
     logging.exception("signal_budget failed")

@@ -162,7 +162,7 @@ def _signal(results: Path) -> list[str]:
         for r in rows
     ]
     return [
-        "The ideal observer's Δχ² of the subhalos per image, median after a linearised refit "
+        "The ideal observer's Δχ² of the subhalos per image, median after a refit "
         f"of the smooth model: {'; '.join(parts)} (≈ 1 invisible, ≳ 25 a detection)."
     ]
 

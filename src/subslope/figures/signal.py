@@ -25,7 +25,7 @@ def signal_budget_figure(
     source: str | None = None,
 ) -> Figure:
     """One row per scene: the Δχ² of every image (dots) and its median (bar), with the
-    smooth model fixed (grey) and after the linearised refit (black), on a log axis; the
+    smooth model fixed (grey) and after the full refit (black), on a log axis; the
     dashed lines mark Δχ² = 1 and 25. Images with Δχ² = 0 (no subhalos) sit at the
     left edge."""
     n = len(labels)

@@ -8,9 +8,11 @@ image; the drizzle correlation whitened, :mod:`subslope.stats.signal`), and insi
 estimator's mask (``training.mask_factor`` θ_E about the lens centre):
 
 - ``dchi2_fixed``: Δχ² of the difference with the smooth model known;
-- ``dchi2_refit``: what is left after a linearised refit of every smooth parameter the
+- ``dchi2_linear``: what is left after a linearised refit of every smooth parameter the
   scene has (:data:`SMOOTH_KEYS`, the multipoles in Cartesian components), whose
-  derivatives are central differences of the subhalo-free image.
+  derivatives are central differences of the subhalo-free image;
+- ``dchi2_refit``: what is left after the full (Gauss-Newton) refit of the same
+  parameters (``signal_budget.refit_iterations``), at most the linearised value.
 
 The source's morphology stays fixed, so both are upper bounds on what an analysis that
 also fits the source could see. An image without subhalos has Δχ² = 0 by definition.
@@ -78,6 +80,7 @@ BUDGET_COLUMNS = (
     "n_sub",
     "gamma",
     "dchi2_fixed",
+    "dchi2_linear",
     "dchi2_refit",
 )
 
@@ -113,18 +116,6 @@ def shifted(macro: dict[str, np.ndarray], names, offsets) -> dict[str, np.ndarra
     for name, value in zip(names, offsets):
         if name in SMOOTH_KEYS:
             out[name] = macro[name] + value
-    return out
-
-
-def _perturbed(macro: dict[str, np.ndarray]) -> list[tuple[str, dict, dict]]:
-    """``(name, macro + step, macro − step)`` for every smooth direction of a one-image
-    ``macro``."""
-    names = smooth_directions(macro)
-    out = []
-    for k, name in enumerate(names):
-        step = np.zeros(len(names))
-        step[k] = step_of(name)
-        out.append((name, shifted(macro, names, step), shifted(macro, names, -step)))
     return out
 
 
@@ -186,27 +177,43 @@ def budget_image(inp: dict[str, Any], mask_factor: float) -> BudgetImage:
     )
 
 
-def _image_budget(inp: dict[str, Any], mask_factor: float) -> tuple[float, float]:
-    """``(dchi2_fixed, dchi2_refit)`` of the one image of the stored inputs ``inp``."""
-    from subslope.stats.signal import delta_chi2, refit_delta_chi2
+def _image_budget(
+    inp: dict[str, Any], mask_factor: float, iterations: int
+) -> tuple[float, float, float]:
+    """``(dchi2_fixed, dchi2_linear, dchi2_refit)`` of the one image of the stored inputs
+    ``inp``: the image with its subhalos fitted by the subhalo-free model, every smooth
+    direction free (offsets in units of :func:`step_of`, so a unit difference step keeps
+    a float32 render above its rounding), by :func:`subslope.stats.signal.gauss_newton_refit`
+    of at most ``iterations`` iterations."""
+    from subslope.stats.signal import delta_chi2, gauss_newton_refit, whiten
 
     b = budget_image(inp, mask_factor)
-    # the scale of a column does not change its span: differences, not derivatives
-    jac = [
-        (b.render(plus, None) - b.render(minus, None)).numpy()
-        for _, plus, minus in _perturbed(b.macro)
-    ]
+    names = smooth_directions(b.macro)
+    steps = np.array([step_of(n) for n in names])
+    target = b.render(b.macro, None).numpy() + b.diff
+
+    def residual(u):
+        model = b.render(shifted(b.macro, names, u * steps), None).numpy()
+        return whiten(target - model, b.sigma, b.w)[b.mask]
+
     fixed = delta_chi2(b.diff, b.sigma, b.mask, b.w)
-    stacked = np.stack(jac) if jac else np.zeros((0, *b.diff.shape))
-    return fixed, refit_delta_chi2(b.diff, stacked, b.sigma, b.mask, b.w)
+    linear, full, _ = gauss_newton_refit(residual, len(names), iterations=iterations)
+    return fixed, linear, full
 
 
 def budget_rows(
-    shard_path, n_images: int, *, mask_factor: float, scene: str, multiplier=None, cosmos=None
+    shard_path,
+    n_images: int,
+    *,
+    mask_factor: float,
+    scene: str,
+    multiplier=None,
+    cosmos=None,
+    iterations: int = 6,
 ) -> list[dict[str, Any]]:
     """One row (:data:`BUDGET_COLUMNS`) per image of the first ``n_images`` of a shard;
     ``cosmos``: this campaign's COSMOS folders (a shard from the cache may name another
-    campaign's)."""
+    campaign's); ``iterations``: of the full refit (1: the linearised refit alone)."""
     from subslope.io.shards import open_shard
     from subslope.simulation.rerender import stored_inputs
 
@@ -217,9 +224,10 @@ def budget_rows(
         for i in range(n):
             macro = {k: np.asarray(v[i : i + 1]) for k, v in shard.params.items()}
             if has_subhalos and int(macro["n_sub"][0]) > 0:
-                fixed, refit = _image_budget(stored_inputs(shard, [i], cosmos=cosmos), mask_factor)
+                inputs = stored_inputs(shard, [i], cosmos=cosmos)
+                fixed, linear, refit = _image_budget(inputs, mask_factor, iterations)
             else:
-                fixed = refit = 0.0
+                fixed = linear = refit = 0.0
             rows.append(
                 {
                     "scene": scene,
@@ -229,6 +237,7 @@ def budget_rows(
                     "n_sub": int(macro["n_sub"][0]) if "n_sub" in macro else 0,
                     "gamma": float(macro["gamma_sub"][0]) if "gamma_sub" in macro else math.nan,
                     "dchi2_fixed": fixed,
+                    "dchi2_linear": linear,
                     "dchi2_refit": refit,
                 }
             )
@@ -244,6 +253,7 @@ def signal_budget_shard(
     scene: str,
     multiplier=None,
     cosmos=None,
+    iterations: int = 6,
 ) -> Path:
     """Rule signal_budget: :func:`budget_rows` of one shard written to ``out_csv``."""
     rows = budget_rows(
@@ -253,6 +263,7 @@ def signal_budget_shard(
         scene=scene,
         multiplier=multiplier,
         cosmos=cosmos,
+        iterations=iterations,
     )
     log.info(
         "%s: median dchi2 fixed %.3g, refit %.3g over %d images",
@@ -274,6 +285,7 @@ SUMMARY_COLUMNS = (
     "refit_p16",
     "refit_p50",
     "refit_p84",
+    "linear_p50",
     "stack_fixed",
     "stack_refit",
 )
@@ -283,7 +295,8 @@ def summarize_signal_budget(
     csv_paths: Sequence, out_csv, fig_stem, *, stack_size: int, run_name: str
 ):
     """The table of the signal budget, one row per scene (and multiplier): the 16/50/84%
-    of Δχ² per image with the smooth model fixed and refitted, and ``stack_fixed`` /
+    of Δχ² per image with the smooth model fixed and refitted in full, the median after
+    the linearised refit (``linear_p50``), and ``stack_fixed`` /
     ``stack_refit``, the Δχ² of a stack of ``stack_size`` images (``stack_size`` × the
     median, Δχ² adding over independent images); and its figure. Returns the table (pandas)."""
     import pandas as pd
@@ -305,6 +318,9 @@ def summarize_signal_budget(
                 "refit_p16": float(q(refit, 16)),
                 "refit_p50": float(q(refit, 50)),
                 "refit_p84": float(q(refit, 84)),
+                "linear_p50": float(np.median(group["dchi2_linear"]))
+                if "dchi2_linear" in group
+                else math.nan,
                 "stack_fixed": float(stack_size * np.median(fixed)),
                 "stack_refit": float(stack_size * np.median(refit)),
             }

@@ -369,9 +369,10 @@ def _signal_section(signal_csv) -> list[str]:
     table["multiplier"] = table["multiplier"].fillna("")
     return [
         "The ideal observer's Δχ² of each scene's subhalos per image (16/50/84%), inside "
-        "the estimator's mask, with the smooth model fixed and after a linearised refit of "
-        "every lens, lens-light, sky and source-position parameter (source morphology "
-        "fixed, so both are upper bounds); `stack_refit` is the refitted Δχ² of a stack "
+        "the estimator's mask, with the smooth model fixed and after a full (Gauss-Newton) "
+        "refit of every lens, lens-light, sky and source-position parameter (source "
+        "morphology fixed, so both are upper bounds; `linear_p50`: the median after the "
+        "first, linearised step alone); `stack_refit` is the refitted Δχ² of a stack "
         "(the stack size × the median). Δχ² ≈ 1 is invisible, ≳ 25 an individual "
         "detection (figures/signal_budget.png):\n",
         md_table(table.to_dict("records"), list(table.columns)),
