@@ -244,27 +244,11 @@ def budget_rows(
     return rows
 
 
-def signal_budget_shard(
-    shard_path,
-    out_csv,
-    n_images: int,
-    *,
-    mask_factor: float,
-    scene: str,
-    multiplier=None,
-    cosmos=None,
-    iterations: int = 6,
-) -> Path:
-    """Rule signal_budget: :func:`budget_rows` of one shard written to ``out_csv``."""
-    rows = budget_rows(
-        shard_path,
-        n_images,
-        mask_factor=mask_factor,
-        scene=scene,
-        multiplier=multiplier,
-        cosmos=cosmos,
-        iterations=iterations,
-    )
+def signal_budget_shard(shard_path, out_csv, n_images: int, **options: Any) -> Path:
+    """Rule signal_budget: :func:`budget_rows` of one shard (``options``: its keywords)
+    written to ``out_csv``."""
+    rows = budget_rows(shard_path, n_images, **options)
+    scene = options.get("scene", "")
     log.info(
         "%s: median dchi2 fixed %.3g, refit %.3g over %d images",
         scene,
