@@ -227,6 +227,22 @@ def test_cdm_shards(config, scene, tmp_path):
         assert not np.array_equal(s.images[()], t.images[()])
 
 
+def test_nfw_and_tnfw_draw_the_same_sets(config, tmp_path):
+    paths = {
+        scene: simulate.simulate_shard(
+            config, scene, 0, tmp_path / f"{scene}.h5", multiplier=1.0, progress=False
+        )
+        for scene in ("nfw", "tnfw")
+    }
+    with shards.open_shard(paths["nfw"]) as s, shards.open_shard(paths["tnfw"]) as t:
+        for key in s.params:
+            np.testing.assert_array_equal(s.params[key][()], t.params[key][()], err_msg=key)
+        for key in ("counts", "mass", "x", "y", "c200"):
+            np.testing.assert_array_equal(s.subhalos[key][()], t.subhalos[key][()])
+        assert (s.attrs["subhalo_profile"], t.attrs["subhalo_profile"]) == ("nfw", "tnfw")
+        assert not np.array_equal(s.images[()], t.images[()])
+
+
 def test_subhalo_free_images_remove_the_subhalos_and_nothing_else(config, tmp_path):
     """A scene without subhalos re-renders to its stored images bit for bit (same
     batches); in a CDM scene removing the subhalos changes the images, and keeping the

@@ -6,10 +6,12 @@
    per shard (scene id: first 8 bytes of the SHA-256 of the scene name), spawned into
    five independent streams: macro, sources, subhalos, LoS, noise. Subhalos and LoS get
    one child stream *per image* and the noise one torch seed per image (stored), so the
-   draws do not depend on the batch size. A CDM scene's shards of every concentration
-   multiplier share their seed: the same lenses, sources, subhalo masses and positions,
-   LoS halos and noise, only the concentrations scaled by a (common random numbers, so
-   figure 4 compares multipliers on the same sets).
+   draws do not depend on the batch size. The CDM scenes (NFW or tNFW subhalos) key
+   their seed by :data:`CDM_DRAWS` instead of their own name, at every concentration
+   multiplier: shard k of the NFW and the tNFW scene at every a holds the same lenses,
+   sources, subhalo masses and positions, LoS halos and noise seeds, the concentrations
+   scaled by a and, for tNFW, the subhalos truncated (common random numbers: figure 4
+   compares multipliers and profiles on the same sets).
 2. **Macro parameters** of all images (:func:`subslope.simulation.macro.sample_macro`).
 3. **Sources**: a COSMOS galaxy of the scene's split per image (uniform), moved to the
    image's z_source (:func:`subslope.io.cosmos.place_at_redshift`), optionally
@@ -72,6 +74,7 @@ __all__ = [
     "STREAMS",
     "scene_id",
     "shard_seed_sequence",
+    "CDM_DRAWS",
     "build_psf",
     "build_instrument",
     "render_settings",
@@ -81,6 +84,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: The name the CDM scenes' shards key their seed by (module docstring, step 1).
+CDM_DRAWS = "cdm"
 
 #: Independent random streams of a shard, in spawn order.
 STREAMS = ("macro", "sources", "subhalos", "los", "noise")
@@ -404,7 +410,7 @@ def simulate_shard(
     if out_path.exists() and not overwrite:
         raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
     n, spec, _, multiplier = _shard_request(config, scene, shard, multiplier)
-    ss = shard_seed_sequence(config["seed"], scene, shard)
+    ss = shard_seed_sequence(config["seed"], scene if multiplier is None else CDM_DRAWS, shard)
     label = "" if multiplier is None else f" (a = {multiplier:g})"
     log.info("simulating %s shard %d%s: %d images -> %s", scene, shard, label, n, out_path)
     out = simulate_images(config, scene, n, ss, multiplier=multiplier, progress=progress)
