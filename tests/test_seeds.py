@@ -23,7 +23,7 @@ from subslope.campaigns.seeds import (
 )
 from subslope.campaigns.systematics import SystematicsError
 from subslope.plan import plan_problems
-from subslope.stages.summary_hst import meaning_lines, seeds_lines
+from subslope.stages.summary_hst import meaning_lines, reach_lines, seeds_lines
 
 CONFIG = REPO_ROOT / "config" / "config.yaml"
 
@@ -121,6 +121,23 @@ def test_the_meaning_sentence_names_what_stands_in_the_way(tmp_path, result, see
         verdict != "the 13 lenses read γ = 2.20 [2.05, 2.35] (68%)"
     )
     assert ("null_nosub [1.10, 1.60]" in text) == (mle < 1.6)
+
+
+def test_what_the_lenses_could_show_scales_the_signal_budget_to_the_stack(tmp_path):
+    hst = _hst_result(tmp_path / "hst.csv", 1.4, 1.1, 1.7)
+    signal = tmp_path / "signal.csv"
+    pd.DataFrame(
+        [
+            {"scene": "train", "multiplier": "", "refit_p50": 64.0},
+            {"scene": "nfw", "multiplier": 0.5, "refit_p50": 1.0},
+            {"scene": "nfw", "multiplier": 1.0, "refit_p50": 4.0},
+            {"scene": "tnfw", "multiplier": 1.0, "refit_p50": 1.5},
+        ]
+    ).to_csv(signal, index=False)
+    text = "".join(reach_lines(hst, signal, ("nfw", "tnfw")))
+    assert "a Δχ² of 52 (nfw) and 19.5 (tnfw)" in text and "against 832 for 13" in text
+    assert reach_lines(hst, None, ("nfw",)) == []
+    assert reach_lines(hst, signal, ("other",)) == []
 
 
 def test_the_workflow_reads_the_table_where_the_command_writes_it():

@@ -22,6 +22,7 @@ from subslope.stages.summary_hst import (
     hst_section,
     leave_one_out_lines,
     meaning_lines,
+    reach_lines,
     seeds_lines,
 )
 from subslope.stats.calibration import coverage_sigma, overconfident
@@ -443,7 +444,8 @@ def write_summary(
         hst_section(folder, hst_csv, null_csv)
         + leave_one_out_lines(loo_csv)
         + seeds_lines(seeds_csv)
-        + meaning_lines(folder / "hst_result.csv", null_csv, seeds_csv),
+        + meaning_lines(folder / "hst_result.csv", null_csv, seeds_csv)
+        + reach_lines(folder / "hst_result.csv", signal_csv, (nfw_scene, tnfw_scene)),
         _signal_section(signal_csv)
         + _response_lines(folder, signal_csv, visibility_csv, halo_free_csv, run_name),
         _cdm_section(folder, cdm_csv, (nfw_scene, tnfw_scene), visibility_csv),

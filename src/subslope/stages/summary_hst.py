@@ -21,6 +21,7 @@ __all__ = [
     "seeds_markdown",
     "seeds_lines",
     "meaning_lines",
+    "reach_lines",
 ]
 
 #: Columns of ``hst_result.csv``: the combined stack of the HST lenses.
@@ -245,3 +246,33 @@ def meaning_lines(hst_result_csv, null_csv=None, seeds_csv=None) -> list[str]:
             "measurement under the training prior's model of the subhalos."
         )
     return [f"\n**{text}**\n"]
+
+
+def reach_lines(hst_result_csv, signal_csv=None, scenes: Sequence[str | None] = ()) -> list[str]:
+    """What the HST lenses could show at all, from the signal budget
+    (``results/signal_budget/signal_budget.csv``): the refitted Δχ² that CDM subhalos
+    (a = 1, each of ``scenes``) and the training scene's would leave in as many images as
+    the HST stack holds (that many × the median per image)."""
+    import pandas as pd
+
+    if not signal_csv or not Path(hst_result_csv).is_file():
+        return []
+    hst = pd.read_csv(hst_result_csv)
+    if not len(hst):
+        return []
+    n = int(hst["n_images"].iloc[0])
+    table = pd.read_csv(signal_csv)
+    parts = []
+    for scene in [s for s in scenes if s]:
+        rows = table[(table["scene"] == scene) & (pd.to_numeric(table["multiplier"]) == 1.0)]
+        if len(rows):
+            parts.append(f"{n * float(rows['refit_p50'].iloc[0]):.3g} ({scene})")
+    train = table[table["scene"] == "train"]
+    if not parts or not len(train):
+        return []
+    return [
+        f"\nWhat {n} lenses could show at all (signal budget): CDM subhalos at a = 1 would "
+        f"leave a stack of {n} images a Δχ² of {' and '.join(parts)} after a full refit of "
+        f"the smooth model, against {n * float(train['refit_p50'].iloc[0]):.3g} for {n} "
+        "training images (Δχ² ≈ 25: one individual detection).\n"
+    ]
