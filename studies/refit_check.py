@@ -3,10 +3,9 @@
 For the first ``--images`` images (with subhalos) of a shard, the noise-free image with
 its subhalos is fitted by the subhalo-free model with every smooth parameter of the
 signal budget free (:func:`subslope.stages.signal_budget.smooth_directions`), by
-Gauss-Newton iterations on the whitened residual inside the estimator's mask (the
-Jacobian by central differences at the current point, a step halved until χ² falls,
-starting at the stored values); the Δχ² left is compared with the linearised refit of
-:mod:`subslope.stages.signal_budget`.
+Gauss-Newton iterations on the whitened residual inside the estimator's mask
+(:func:`subslope.stats.signal.gauss_newton_refit`, every iteration run: no early stop,
+starting at the stored values); the Δχ² left is compared with the first, linearised step.
 
     OMP_NUM_THREADS=2 .venv/bin/python studies/refit_check.py \\
         results/simulate_shard/nfw/a4/shard_0.h5 --images 4
@@ -39,7 +38,7 @@ def main(argv=None) -> int:
         smooth_directions,
         step_of,
     )
-    from subslope.stats.signal import delta_chi2, whiten
+    from subslope.stats.signal import delta_chi2, gauss_newton_refit, whiten
 
     rows = []
     with open_shard(args.shard) as shard:
@@ -59,31 +58,9 @@ def main(argv=None) -> int:
 
             # unknowns: offsets in units of each direction's step (1e-3 arcsec, ...); a
             # difference step of one unit keeps the float32 renders above their rounding
-            def columns(u, names=names, residual=residual):
-                out = []
-                for k in range(len(names)):
-                    e = np.zeros(len(names))
-                    e[k] = 1.0
-                    out.append((residual(u - e) - residual(u + e)) / 2.0)
-                return np.stack(out, axis=1)
-
-            u = np.zeros(len(names))
-            r = residual(u)
-            linear = None
-            for _ in range(args.iterations):
-                a = columns(u)
-                step, *_ = np.linalg.lstsq(a, r, rcond=None)
-                if linear is None:
-                    linear = float(np.sum((r - a @ step) ** 2))
-                for _halving in range(8):
-                    trial = residual(u + step)
-                    if np.sum(trial**2) < np.sum(r**2):
-                        u, r = u + step, trial
-                        break
-                    step = step / 2.0
-                else:
-                    break
-            full = float(np.sum(r**2))
+            linear, full, _ = gauss_newton_refit(
+                residual, len(names), iterations=args.iterations, rtol=0.0
+            )
             rows.append(
                 {
                     "image": i,

@@ -409,7 +409,7 @@ def simulate_shard(
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
-    n, spec, _, multiplier = _shard_request(config, scene, shard, multiplier)
+    n, spec, multiplier = _shard_request(config, scene, shard, multiplier)
     ss = shard_seed_sequence(config["seed"], scene if multiplier is None else CDM_DRAWS, shard)
     label = "" if multiplier is None else f" (a = {multiplier:g})"
     log.info("simulating %s shard %d%s: %d images -> %s", scene, shard, label, n, out_path)
@@ -463,7 +463,7 @@ def simulate_shard(
 
 def _shard_request(config: Mapping[str, Any], scene: str, shard: int, multiplier: float | None):
     """Check a shard request against the config: ``(images in the shard, scene spec,
-    multiplier index or None, multiplier as listed or None)``."""
+    multiplier as listed or None)``."""
     counts = config["simulation"]["scenes"].get(scene)
     if counts is None:
         raise ValueError(
@@ -480,7 +480,7 @@ def _shard_request(config: Mapping[str, Any], scene: str, shard: int, multiplier
     if mults is None:
         if multiplier is not None:
             raise ValueError(f"scene {scene!r} has no NFW/tNFW component: multiplier must be None")
-        return int(counts["images_per_shard"]), spec, None, None
+        return int(counts["images_per_shard"]), spec, None
     if multiplier is None:
         raise ValueError(f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}")
     matches = [k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)]
@@ -488,4 +488,4 @@ def _shard_request(config: Mapping[str, Any], scene: str, shard: int, multiplier
         raise ValueError(
             f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}"
         )
-    return int(counts["images_per_shard"]), spec, matches[0], mults[matches[0]]
+    return int(counts["images_per_shard"]), spec, mults[matches[0]]

@@ -12,9 +12,11 @@ estimator's mask (``training.mask_factor`` θ_E about the lens centre):
   scene has (:data:`SMOOTH_KEYS`, the multipoles in Cartesian components), whose
   derivatives are central differences of the subhalo-free image;
 - ``dchi2_refit``: what is left after the full (Gauss-Newton) refit of the same
-  parameters (``signal_budget.refit_iterations``), at most the linearised value.
+  parameters (``signal_budget.refit_iterations``): at most ``dchi2_fixed``, and usually
+  below the linearised value, though not always (the first step can fall short of what
+  the linearisation predicts; the full refit then stops above it).
 
-The source's morphology stays fixed, so both are upper bounds on what an analysis that
+The source's morphology stays fixed, so all three are upper bounds on what an analysis that
 also fits the source could see. An image without subhalos has Δχ² = 0 by definition.
 """
 

@@ -148,6 +148,8 @@ def _sheet_lines(folder: Path, sheet_csv: Path) -> list[str]:
         return []
     sheet = pd.read_csv(sheet_csv, keep_default_na=False)
     write_text(folder / "sheet_channel.csv", sheet.to_csv(index=False))
+    for column in ("rho", "p", "bound"):  # empty cells read as text keep the column text
+        sheet[column] = pd.to_numeric(sheet[column], errors="coerce")
     rows = sheet.to_dict("records")
     follow = [r for r in rows if r["against"] == "label" and not r["given"]]
     rest = [r for r in rows if r["given"]]

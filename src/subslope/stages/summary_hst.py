@@ -93,22 +93,28 @@ def hst_section(folder: Path, hst_csv, null_csv=None) -> list[str]:
     ]
 
 
-def against_null_stacks(mle: float, n_images: int, null_csv) -> list[str]:
-    """Where the HST combined γ_MLE falls among the stack γ_MLE of the subhalo-free null
-    scenes stacked as many images deep (``null_tests.csv``): inside their 16–84% range
-    it does not tell the HST lenses from images without subhalos."""
+def _null_ranges(null_csv, n_images: int) -> list[tuple[str, float, float]]:
+    """(scene, 16%, 84%) of the stack γ_MLE of every subhalo-free null scene stacked
+    ``n_images`` deep."""
     import pandas as pd
 
     if not null_csv:
         return []
     null = pd.read_csv(null_csv)
     null = null[null["n_per_stack"] == n_images]
-    if not len(null):
+    return [(r.scene, float(r.stack_mle_p16), float(r.stack_mle_p84)) for r in null.itertuples()]
+
+
+def against_null_stacks(mle: float, n_images: int, null_csv) -> list[str]:
+    """Where the HST combined γ_MLE falls among the stack γ_MLE of the subhalo-free null
+    scenes stacked as many images deep (``null_tests.csv``): inside their 16–84% range
+    it does not tell the HST lenses from images without subhalos."""
+    ranges = _null_ranges(null_csv, n_images)
+    if not ranges:
         return []
     parts = [
-        f"{r.scene} {'inside' if r.stack_mle_p16 <= mle <= r.stack_mle_p84 else 'outside'} "
-        f"[{r.stack_mle_p16:.2f}, {r.stack_mle_p84:.2f}]"
-        for r in null.itertuples()
+        f"{scene} {'inside' if lo <= mle <= hi else 'outside'} [{lo:.2f}, {hi:.2f}]"
+        for scene, lo, hi in ranges
     ]
     return [
         f"Against the {n_images}-image stacks of the subhalo-free null scenes (16–84% of "
@@ -186,18 +192,6 @@ def seeds_lines(seeds_csv) -> list[str]:
         "results/seeds/; every training sees the same images):\n",
         seeds_markdown(rows),
     ]
-
-
-def _null_ranges(null_csv, n_images: int) -> list[tuple[str, float, float]]:
-    """(scene, 16%, 84%) of the stack γ_MLE of every subhalo-free null scene stacked
-    ``n_images`` deep."""
-    import pandas as pd
-
-    if not null_csv:
-        return []
-    null = pd.read_csv(null_csv)
-    null = null[null["n_per_stack"] == n_images]
-    return [(r.scene, float(r.stack_mle_p16), float(r.stack_mle_p84)) for r in null.itertuples()]
 
 
 def meaning_lines(hst_result_csv, null_csv=None, seeds_csv=None) -> list[str]:
