@@ -42,6 +42,8 @@ SHIPPED_DEVIATIONS = {
     ("training", "inputs"),
     ("training", "augment"),
     ("null_tests", "scenes"),
+    ("cdm", "reference_nfw_scene"),
+    ("cdm", "reference_tnfw_scene"),
     ("systematics", "variants"),
     ("systematics", "common"),
 }
@@ -73,7 +75,17 @@ SHIPPED_SCENE_CHOICES = {
     "main_lens": {
         "x": {"dist": "uniform", "low": -0.3, "high": 0.3},
         "y": {"dist": "uniform", "low": -0.3, "high": 0.3},
+        "theta_e": {"dist": "uniform", "low": 0.9, "high": 1.5},
     },
+}
+
+#: The reference code's CDM sets (cdm.reference_*_scene): as nfw and tnfw, with
+#: N_sub ~ U{0, 12000} where the source stamp lands and the subhalos' sheet at the origin.
+REFERENCE_SUBHALOS = {
+    "count": {"dist": "uniform_int", "low": 0, "high": 12000},
+    "placement": "landing",
+    "threshold_fraction": 0.01,
+    "sheet_centre": "origin",
 }
 
 
@@ -96,6 +108,12 @@ def test_shipped_config_is_valid_and_complete():
     chosen = {name: SHIPPED_SCENE_CHOICES for name in defaults["scenes"] or PRESETS}
     test_sets = {"images_per_set": 13, "source": {"split": "test"}, **SHIPPED_SCENE_CHOICES}
     chosen.update({name: {**test_sets, **spec} for name, spec in NULL_SCENES.items()})
+    for name, profile in (("nfw_ref", "nfw"), ("tnfw_ref", "tnfw")):
+        chosen[name] = {
+            **test_sets,
+            "subhalos": {**REFERENCE_SUBHALOS, "profile": profile},
+            "los": {"profile": "nfw"},
+        }
     assert scenes_from_config(loaded["scenes"]) == scenes_from_config(chosen)
     assert loaded["null_tests"]["scenes"] == list(NULL_SCENES)
     strip = SHIPPED_DEVIATIONS | {("scenes",)}

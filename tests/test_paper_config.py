@@ -89,7 +89,9 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     n_null = sum(cfg["simulation"]["scenes"][s]["n_shards"] for s in cfg["null_tests"]["scenes"])
     assert n_null == 2  # the null scenes of config.yaml, one shard each
     assert stats["simulate_shard"] == 5000 + 1 + 10 + n_null
-    assert stats["simulate_cdm_shard"] == stats["evaluate_cdm_profiles"] == 2 * n_mult * 10
+    n_cdm = len(cfgmod.cdm_scenes(cfg))  # both grids: nfw, tnfw, nfw_ref, tnfw_ref
+    assert n_cdm == 4
+    assert stats["simulate_cdm_shard"] == stats["evaluate_cdm_profiles"] == n_cdm * n_mult * 10
     assert stats["evaluate_profiles"] == 1 + 10 + n_null
     assert stats["calibrate_threshold"] == 6
     for rule in (
@@ -103,8 +105,10 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     # the cluster jobs: shard and profile jobs bundled by the profile's group-components
     jobs = count_cluster_jobs(proc.stdout, host_rules(tmp_path))
     size = _group_components()
-    kinds = {"simulate": ("simulate_shard", "simulate_cdm_shard"),
-             "evaluate": ("evaluate_profiles", "evaluate_cdm_profiles")}  # fmt: skip
+    kinds = {
+        "simulate": ("simulate_shard", "simulate_cdm_shard"),
+        "evaluate": ("evaluate_profiles", "evaluate_cdm_profiles", "subhalo_free_profiles"),
+    }
     for kind, rules in kinds.items():
         grouped = sum(n for key, n in jobs.items() if key.startswith(f"group {kind}:"))
         assert grouped == -(-sum(stats[r] for r in rules) // size[kind]), kind
@@ -163,6 +167,7 @@ def test_tiny_groups_through_the_slurm_profile(workdir, data_dir):
     proc = subprocess.run([str(SNAKEMAKE), *argv], cwd=workdir, env=env, capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    # the 8 shard jobs and the 6 profile jobs of tiny.yaml, one cluster job each
-    assert sorted(_group_jobs(proc.stdout)) == [("evaluate", 6), ("simulate", 8)]
+    # the 10 shard jobs of tiny.yaml in one cluster job; its 8 profile jobs and 4
+    # subhalo-free profile jobs in cluster jobs of at most 10 (group-components)
+    assert sorted(_group_jobs(proc.stdout)) == [("evaluate", 2), ("evaluate", 10), ("simulate", 10)]
     assert _group_components() == {"simulate": 20, "evaluate": 10}

@@ -248,12 +248,15 @@ def test_sersic_source_keys(rng):
 def test_config_fragment_matches_presets_and_schema():
     cfg = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))
     from_fragment = scenes_from_config(cfg["scenes"])
-    from test_config import NULL_SCENES
+    from test_config import NULL_SCENES, REFERENCE_SUBHALOS
     from test_config import SHIPPED_SCENE_CHOICES as realism
 
     expected = {n: realism for n in PRESETS}
     test_sets = {"images_per_set": 13, "source": {"split": "test"}, **realism}
     expected.update({n: {**test_sets, **spec} for n, spec in NULL_SCENES.items()})
+    for name, profile in (("nfw_ref", "nfw"), ("tnfw_ref", "tnfw")):
+        subhalos = {**REFERENCE_SUBHALOS, "profile": profile}
+        expected[name] = {**test_sets, "subhalos": subhalos, "los": {"profile": "nfw"}}
     assert from_fragment == scenes_from_config(expected)
     frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
     schema = {

@@ -61,6 +61,7 @@ rule measure_cdm_grid:
         ],
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
+        reference_scenes=subslope.config.cdm_grids(config).get("reference"),
         band=CDM["band"],
         run_name=RUN,
     script:

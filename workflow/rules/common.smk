@@ -229,7 +229,7 @@ for _name, _on in STAGE_ON.items():
 # Evaluation sets: which shards get profiles, and the calibration stack sizes.
 CAL = config["calibration"]
 CDM = config["cdm"]
-CDM_SCENES = [s for s in (CDM["nfw_scene"], CDM["tnfw_scene"]) if s]
+CDM_SCENES = subslope.config.cdm_scenes(config)  # both grids' (t)NFW scenes
 RUN = config["run_name"]
 CAL_N = sorted(CAL["n_images"])
 GRID = config["inference"]["gamma_grid"]
@@ -240,8 +240,7 @@ def eval_scenes():
     scenes = [
         CAL["single_scene"],
         CAL["stack_scene"],
-        CDM["nfw_scene"],
-        CDM["tnfw_scene"],
+        *CDM_SCENES,
         *(config["null_tests"]["scenes"] if STAGE_ON["null_tests"] else []),
     ]
     simulated = {job["scene"] for job in SHARD_JOBS}
@@ -466,7 +465,7 @@ def halo_free_on():
     return STAGE_ON["null_tests"] and HALO_FREE_N > 0
 
 
-# The CDM visibility check's shards: the a = 1 shards of the CDM scenes (rules
+# The CDM visibility check's shards: the shards of every CDM scene at every multiplier (rules
 # subhalo_free_profiles, cdm_visibility).
 VISIBILITY_JOBS = [
     job
@@ -474,7 +473,7 @@ VISIBILITY_JOBS = [
     if STAGE_ON["null_tests"]
     and STAGE_ON["cdm_grid"]
     and config["null_tests"]["cdm_visibility"]
-    and job["scene"] in (CDM["nfw_scene"], CDM["tnfw_scene"])
+    and job["scene"] in CDM_SCENES
 ]
 
 

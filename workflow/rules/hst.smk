@@ -48,6 +48,7 @@ rule analyze_hst:
         device=config["inference"]["device"],
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
+        reference_scenes=subslope.config.cdm_grids(config).get("reference"),
         run_name=RUN,
     script:
         "../scripts/analyze_hst.py"

@@ -118,6 +118,8 @@ use rule halo_free_profiles as subhalo_free_profiles with:
         "logs/subhalo_free_profiles/{scene}/a{multiplier}/shard_{shard}.log",
     benchmark:
         "results/benchmarks/subhalo_free/{scene}/a{multiplier}/shard_{shard}.tsv"
+    group:
+        "evaluate"
 
 
 rule cdm_visibility:

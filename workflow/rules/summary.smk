@@ -23,5 +23,6 @@ rule write_summary:
         benchmarks=benchmark_files(),
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
+        reference_scenes=subslope.config.cdm_grids(config).get("reference"),
     script:
         "../scripts/write_summary.py"

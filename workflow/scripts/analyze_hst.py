@@ -39,6 +39,7 @@ try:
         device=snakemake.params.device,
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
+        reference_scenes=snakemake.params.reference_scenes,
         domain_csv=snakemake.input.domain or None,
         config=snakemake.config,
         loo_csv=snakemake.output.loo,

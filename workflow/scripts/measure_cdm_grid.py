@@ -19,6 +19,7 @@ try:
         run_name=snakemake.params.run_name,
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
+        reference_scenes=snakemake.params.reference_scenes,
         band=tuple(snakemake.params.band),
         effective_slopes_csv=snakemake.input.effective_slopes,
     )

@@ -33,6 +33,7 @@ try:
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
+        reference_scenes=snakemake.params.reference_scenes,
     )
     record = write_run_record(
         snakemake.output.run,

@@ -45,6 +45,8 @@ __all__ = [
     "halo_free_sets",
     "halo_free_shards",
     "active_stages",
+    "cdm_grids",
+    "cdm_scenes",
     "STAGE_NEEDS",
     "BASE_KEY",
     "deep_merge",
@@ -188,6 +190,28 @@ STAGE_NEEDS: dict[str, tuple[str, ...]] = {
 }
 
 
+#: Names of the concentration grids (figure 4's panels) in :func:`cdm_grids`.
+CDM_GRIDS = ("field", "reference")
+
+
+def cdm_grids(config: Mapping[str, Any]) -> dict[str, tuple[str, str | None]]:
+    """The concentration grids of a config, ``{grid: (nfw_scene, tnfw_scene)}``: ``field``
+    (``cdm.nfw_scene``/``tnfw_scene``, always) and ``reference``
+    (``cdm.reference_nfw_scene``/``reference_tnfw_scene``, when set: the reference
+    code's sets)."""
+    cdm = config["cdm"]
+    grids = {"field": (cdm["nfw_scene"], cdm["tnfw_scene"])}
+    if cdm.get("reference_nfw_scene"):
+        grids["reference"] = (cdm["reference_nfw_scene"], cdm.get("reference_tnfw_scene"))
+    return grids
+
+
+def cdm_scenes(config: Mapping[str, Any]) -> list[str]:
+    """Every CDM scene of :func:`cdm_grids`, in grid order, without repeats."""
+    names = [s for pair in cdm_grids(config).values() for s in pair if s]
+    return list(dict.fromkeys(names))
+
+
 def active_stages(config: Mapping[str, Any]) -> dict[str, bool]:
     """``{stage: runs}``: a stage runs when its flag and the flags of every stage it needs
     (:data:`STAGE_NEEDS`) are on, so a switched-off stage never runs as a dependency."""
@@ -295,6 +319,14 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
                 )
         if cdm["tnfw_scene"]:
             need_scene("cdm.tnfw_scene", cdm["tnfw_scene"])
+        for key in ("reference_nfw_scene", "reference_tnfw_scene"):
+            if cdm[key]:
+                need_scene(f"cdm.{key}", cdm[key])
+        if cdm["reference_tnfw_scene"] and not cdm["reference_nfw_scene"]:
+            problems.append(
+                "config key cdm.reference_tnfw_scene is set but cdm.reference_nfw_scene is "
+                "null: the reference grid needs its NFW scene"
+            )
     if stages["null_tests"]:
         for k, name in enumerate(config["null_tests"]["scenes"]):
             need_scene(f"null_tests.scenes[{k}]", name)

@@ -71,6 +71,11 @@ def concentration_grid(
     percentiles: tuple[float, float, float] = (16, 50, 84),
     reference_nfw=None,
     reference_tnfw=None,
+    second: Mapping | None = None,
+    titles: tuple[str, str] = (
+        "(t)NFW subhalos over the whole field",
+        "the reference code's sets: where the source lands",
+    ),
 ) -> Figure:
     """Fig. 4: stack MLEs against the concentration multiplier ``a`` (log axis).
 
@@ -84,18 +89,43 @@ def concentration_grid(
     16–84% range of the stack MLEs (the spread of the measurement from one set of 13
     lenses to another). ``a = cdm`` (1) is marked as the CDM prediction. ``hst``:
     optional ``(mle, lo, hi)`` of the real stack, drawn as a horizontal band.
+    ``second``: a second grid on the same multipliers (keys ``mles_nfw``, ``mles_tnfw``,
+    ``reference_nfw``, ``reference_tnfw``), drawn as a panel to the right on a shared
+    γ axis; ``titles`` name the two panels.
     """
     a = np.asarray(multipliers, dtype=np.float64).ravel()
     if a.size == 0 or np.any(a <= 0):
         raise ValueError("multipliers must be a non-empty array of positive values (log axis)")
-    fig = Figure(figsize=(5.6, 4.8))
-    ax = fig.subplots()
-    series = [("NFW subhalos", mles_nfw, C_NFW, "o", 1 / 1.03)]
-    if mles_tnfw is not None:
-        series.append(("tNFW subhalos", mles_tnfw, C_TNFW, "s", 1.03))
-    for label, ref, color in (("NFW", reference_nfw, C_NFW), ("tNFW", reference_tnfw, C_TNFW)):
-        if ref is not None:
-            _draw_reference(ax, a, ref, label, color)
+    panels = [
+        {
+            "mles_nfw": mles_nfw,
+            "mles_tnfw": mles_tnfw,
+            "reference_nfw": reference_nfw,
+            "reference_tnfw": reference_tnfw,
+        }
+    ]
+    if second is not None:
+        panels.append(dict(second))
+    fig = Figure(figsize=(5.6 * len(panels), 4.8))
+    axes = np.atleast_1d(fig.subplots(1, len(panels), sharey=True))
+    for k, (ax, panel) in enumerate(zip(axes, panels)):
+        _grid_panel(ax, a, panel, hst, cdm, percentiles)
+        if len(panels) > 1:
+            ax.set_title(titles[k], fontsize=9)
+    axes[0].set_ylabel(rf"stack $\gamma_\mathrm{{MLE}}$ ({n_images} images)")
+    footer(fig, run_name, source)
+    return _finish(fig, f"Slope measured on {n_images}-image stacks of (t)NFW subhalo simulations")
+
+
+def _grid_panel(ax, a, panel: Mapping, hst, cdm: float, percentiles) -> None:
+    """One panel of :func:`concentration_grid`: the NFW/tNFW stack MLEs per multiplier,
+    the effective-slope references, the HST band and the CDM marker."""
+    series = [("NFW subhalos", panel["mles_nfw"], C_NFW, "o", 1 / 1.03)]
+    if panel.get("mles_tnfw") is not None:
+        series.append(("tNFW subhalos", panel["mles_tnfw"], C_TNFW, "s", 1.03))
+    for label, key, color in (("NFW", "reference_nfw", C_NFW), ("tNFW", "reference_tnfw", C_TNFW)):
+        if panel.get(key) is not None:
+            _draw_reference(ax, a, panel[key], label, color)
     for label, m, color, marker, shift in series:
         m = np.asarray(m, dtype=np.float64)
         if m.ndim != 2 or m.shape[0] != a.size:
@@ -132,11 +162,8 @@ def concentration_grid(
     ax.xaxis.set_minor_locator(NullLocator())
     ax.set_xlim(a.min() / 1.25, a.max() * 1.25)
     ax.set_xlabel(r"concentration multiplier $a$ ($c_{200} = a\,c_\mathrm{CDM}$)")
-    ax.set_ylabel(rf"stack $\gamma_\mathrm{{MLE}}$ ({n_images} images)")
     ax.grid(alpha=0.25)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), fontsize=7, frameon=False)
-    footer(fig, run_name, source)
-    return _finish(fig, f"Slope measured on {n_images}-image stacks of (t)NFW subhalo simulations")
 
 
 def _draw_reference(ax, a, ref, label: str, color) -> None:
@@ -238,6 +265,7 @@ def hst_combined(
     kind: str = "t",
     n_images: int = 13,
     ymax: float | None = None,
+    reference_bands: tuple | None = None,
 ) -> Figure:
     """Fig. 6: the combined HST profile with its calibrated 68% interval and the CDM bands.
 
@@ -245,7 +273,9 @@ def hst_combined(
     images; ``tau_13``: the calibrated threshold for that N; ``interval``: an
     :class:`~subslope.stats.intervals.Interval` (edge/multimodal flags are stated in the
     annotation) or ``(lo, hi)``; ``band_nfw``/``band_tnfw``: ``(lo, hi)`` 68% ranges
-    (16–84%) of the a = 1 NFW/tNFW stack MLEs (Fig. 4 at a = 1), shaded.
+    (16–84%) of the a = 1 NFW/tNFW stack MLEs (Fig. 4 at a = 1), shaded;
+    ``reference_bands``: ``(band_nfw, band_tnfw)`` of the reference code's sets (Fig. 4's
+    second panel at a = 1), hatched.
     """
     g = np.asarray(gammas, dtype=np.float64)
     t = _to_t(t_combined, g, kind)
@@ -273,6 +303,16 @@ def hst_combined(
     if band_tnfw is not None:
         bands.append(("CDM tNFW subhalos, $a$ = 1 (68%)", band_tnfw, C_TNFW))
     _draw_bands(ax, bands)
+    for label, band, color in zip(("NFW", "tNFW"), reference_bands or (), (C_NFW, C_TNFW)):
+        if band is not None:
+            ax.axvspan(
+                *band,
+                fill=False,
+                hatch="///",
+                ec=color,
+                lw=0.8,
+                label=f"{label}, reference code's sets, $a$ = 1 (68%)",
+            )
     ax.plot(g, t, color=C_HST, lw=2, label=f"HST, {n_images} lenses combined")
     ax.axhline(
         tau_13,

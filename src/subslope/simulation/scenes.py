@@ -64,7 +64,7 @@ __all__ = [
 
 SUBHALO_PROFILES = ("epl", "nfw", "tnfw")
 LOS_PROFILES = ("epl", "nfw")
-PLACEMENTS = ("arc", "everywhere")
+PLACEMENTS = ("arc", "landing", "everywhere")
 SHEET_CENTRES = ("origin", "mass_centroid")  # as subslope.render.populations
 SOURCE_KINDS = ("cosmos", "sersic", "multi_sersic")
 #: Largest number of components of the multi-Sérsic source (the upper end of the
@@ -314,7 +314,9 @@ class SubhaloSpec:
 
     ``gamma`` is the prior of the per-system label γ; per subhalo
     γ_i ~ N(γ, gamma_scatter·γ) truncated to ``gamma_bounds``. ``threshold_fraction`` is
-    used by ``placement='arc'`` only; ``sheet_centre``: ``origin`` | ``mass_centroid``.
+    used by ``placement='arc'`` (of the smooth model's maximum) and ``'landing'`` (of the
+    maximum of the image of the source stamp's support) only; ``sheet_centre``:
+    ``origin`` | ``mass_centroid``.
     """
 
     count: Prior
@@ -410,17 +412,25 @@ class Scene:
             }
         )
         sh = ShearSpec(**{p: _prior(d["shear"], p, f"{key}.shear") for p in ("g1", "g2")})
+        source = _source_spec(d["source"], f"{key}.source")
+        subhalos = _subhalo_spec(d["subhalos"], f"{key}.subhalos")
+        if subhalos.placement == "landing" and source.kind != "cosmos":
+            raise SceneError(
+                f"config key {key}.subhalos.placement = 'landing' needs a COSMOS stamp to "
+                f"land (source.kind: cosmos), got {key}.source.kind = {source.kind!r}; "
+                "use 'arc' or 'everywhere'"
+            )
         return cls(
             name,
             comp,
             ips,
             _redshifts_spec(d["redshifts"], f"{key}.redshifts"),
-            _source_spec(d["source"], f"{key}.source"),
+            source,
             _main_lens_spec(d["main_lens"], f"{key}.main_lens"),
             mp,
             sh,
             _lens_light_spec(d["lens_light"], f"{key}.lens_light"),
-            _subhalo_spec(d["subhalos"], f"{key}.subhalos"),
+            subhalos,
             _los_spec(d["los"], f"{key}.los"),
             _concentration_spec(d["concentration"], f"{key}.concentration"),
             SkySpec(_prior(d["sky"], "level", f"{key}.sky")),

@@ -66,9 +66,10 @@ from subslope.simulation.resolve import resolved_scene, scene_multipliers, simul
 from subslope.simulation.sources import (
     cosmos_folders,
     draw_sources,
+    landing_stamps,
     pixelated_sources,
 )
-from subslope.simulation.subhalos import SubhaloPopulation, sample_subhalos
+from subslope.simulation.subhalos import ON_IMAGE, SubhaloPopulation, sample_subhalos
 
 __all__ = [
     "STREAMS",
@@ -251,8 +252,17 @@ def _simulate_batch(job: _Job, sl: slice) -> None:
         )
     t = time.perf_counter()
     smooth = None
-    if sc.components.subhalos and sc.subhalos.placement == "arc" and np.any(m_b["n_sub"] > 0):
-        smooth = render_smooth(m_b, job.psf, settings, sources=src_b).detach().cpu().numpy()
+    placement = sc.subhalos.placement
+    if sc.components.subhalos and placement in ON_IMAGE and np.any(m_b["n_sub"] > 0):
+        on = src_b
+        if placement == "landing":
+            on = pixelated_sources(
+                landing_stamps(job.stamps[sl]),
+                job.sources["pixel_scale"][sl],
+                job.pad_shape,
+                settings,
+            )
+        smooth = render_smooth(m_b, job.psf, settings, sources=on).detach().cpu().numpy()
     timing["smooth"] += time.perf_counter() - t
     t = time.perf_counter()
     subs, lpop = _draw_populations(sc, job.macro, idx, smooth, job.draws)

@@ -50,6 +50,7 @@ __all__ = [
     "brightest_magnitude",
     "place_source",
     "pixelated_sources",
+    "landing_stamps",
     "draw_sources",
     "cleaning_examples",
 ]
@@ -392,6 +393,17 @@ def pixelated_sources(stamps: Sequence[np.ndarray], pixel_scales, pad_shape, set
         offsets=offsets[:-1],
         pixel_scale=np.asarray(pixel_scales, dtype=np.float64),
     )
+
+
+def landing_stamps(stamps: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The support of each source stamp: 1 over the stamp's whole box, whatever its
+    pixels hold. Lensed and PSF-convolved, it marks where the stamp lands in the image:
+    the candidate pixels of ``placement: landing``. The reference code placed its CDM
+    subhalos on the pixels where its lensed, undenoised COSMOS stamp was positive
+    (repository gemyxzhang/neural-subhalo-slope-data, ``utils.py``), about half of the
+    stamp's landing area by sky noise plus the galaxy; a uniform pick over the whole
+    landing area has the same footprint (docs/simulation.md, "Subhalo placement")."""
+    return [np.ones_like(np.asarray(s, dtype=np.float64)) for s in stamps]
 
 
 def draw_sources(

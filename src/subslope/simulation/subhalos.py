@@ -9,7 +9,8 @@ draws each system's subhalos and converts them to lens-profile parameters:
   truncated-normal quantiles, γ the system's label;
 - ellipticities (EPL): e1, e2 from the scene priors (default U(−0.2, 0.2));
 - positions: on the arc (a random pixel of the smooth image brighter than
-  ``threshold_fraction`` × its maximum, plus a uniform offset within that pixel) or
+  ``threshold_fraction`` × its maximum, plus a uniform offset within that pixel), where
+  the source stamp lands (the same rule on the image of the stamp's support) or
   uniformly over the whole field;
 - lens parameters: EPL amplitude θ_E^(γ−1) (:func:`subslope.physics.cosmology.epl_amp_from_m200`),
   or NFW ``(R_s, α_Rs)`` with c200 = a · c_DM14(M, z_lens) · 10^N(0, σ_dex)
@@ -42,6 +43,7 @@ __all__ = [
     "system_index",
     "sample_masses",
     "sample_subhalo_gammas",
+    "ON_IMAGE",
     "arc_candidates",
     "place_on_arc",
     "place_everywhere",
@@ -167,6 +169,13 @@ def sample_subhalo_gammas(
 
 
 # ---------------------------------------------------------------------------- placement
+#: Placements that pick candidate pixels of an image of the smooth model: ``arc`` (the
+#: lensed source, PSF-convolved) and ``landing`` (the lensed support of the source stamp,
+#: PSF-convolved: every pixel whose light comes from inside the stamp, as the reference
+#: code's noisy, undenoised stamps made it).
+ON_IMAGE = ("arc", "landing")
+
+
 def _threshold_mask(images: np.ndarray, threshold_fraction: float) -> np.ndarray:
     if not 0.0 < threshold_fraction < 1.0:
         raise ValueError(f"threshold_fraction = {threshold_fraction!r} must lie in (0, 1)")
@@ -412,9 +421,10 @@ def sample_subhalos(
     spec = scene.subhalos
     n_img = macro["z_lens"].shape[0]
     counts = _counts(macro["n_sub"]) if "n_sub" in macro else np.zeros(n_img, dtype=np.int64)
-    if spec.placement == "arc" and smooth_images is None and counts.sum():
+    if spec.placement in ON_IMAGE and smooth_images is None and counts.sum():
         raise ValueError(
-            f"scene {scene.name!r} places subhalos on the arc: pass smooth_images (B, H, W)"
+            f"scene {scene.name!r} places subhalos by placement {spec.placement!r}: pass "
+            "smooth_images (B, H, W)"
         )
 
     def draw(r: np.random.Generator, s: slice) -> dict[str, np.ndarray]:
@@ -445,7 +455,7 @@ def _draw_fields(
         )
         drawn["e1"] = spec.e1.sample(rng, n)
         drawn["e2"] = spec.e2.sample(rng, n)
-    if spec.placement == "arc":
+    if spec.placement in ON_IMAGE:
         if smooth_images is None:  # no subhalos (checked by the caller)
             x = y = np.zeros(0)
         else:

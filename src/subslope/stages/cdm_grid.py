@@ -148,6 +148,7 @@ def measure_cdm_grid(
     band=(16, 84),
     source: str | None = None,
     effective_slopes_csv=None,
+    reference_scenes: Sequence | None = None,
 ):
     """Stack MLEs (one per simulated set) for every (scene, multiplier) of ``files``.
 
@@ -157,7 +158,8 @@ def measure_cdm_grid(
     n_sets, n_images, median, lo, hi, and with ``effective_slopes_csv`` (rule
     effective_slope) ``reference``, the median effective slope of the sets, and
     ``distance`` = median − reference) and figure 4 with the reference curves. Returns
-    the table.
+    the table. ``reference_scenes``: ``(nfw, tnfw)`` of the reference code's sets
+    (``cdm.reference_*_scene``), measured alike and drawn as figure 4's second panel.
     """
     import pandas as pd
 
@@ -166,7 +168,12 @@ def measure_cdm_grid(
     from subslope.figures.paper import concentration_grid
 
     mults = sorted({float(a) for _, a in files})
-    scenes = [s for s in (nfw_scene, tnfw_scene) if s is not None and any(k[0] == s for k in files)]
+    ref_nfw, ref_tnfw = tuple(reference_scenes) if reference_scenes else (None, None)
+    scenes = [
+        s
+        for s in dict.fromkeys((nfw_scene, tnfw_scene, ref_nfw, ref_tnfw))
+        if s is not None and any(k[0] == s for k in files)
+    ]
     rows, arrays = [], {"multipliers": np.asarray(mults)}
     for scene in scenes:
         scene_rows, arrays[f"mles_{scene}"] = _scene_grid(files, scene, mults, band, slopes)
@@ -187,6 +194,14 @@ def measure_cdm_grid(
         percentiles=(band[0], 50, band[1]),
         reference_nfw=_reference(slopes, nfw_scene, mults, band),
         reference_tnfw=_reference(slopes, tnfw_scene, mults, band) if tnfw_scene else None,
+        second=None
+        if ref_nfw is None
+        else {
+            "mles_nfw": arrays[f"mles_{ref_nfw}"],
+            "mles_tnfw": arrays.get(f"mles_{ref_tnfw}") if ref_tnfw else None,
+            "reference_nfw": _reference(slopes, ref_nfw, mults, band),
+            "reference_tnfw": _reference(slopes, ref_tnfw, mults, band) if ref_tnfw else None,
+        },
     )
     save_figure(fig, fig_stem, run_name=run_name)
     return table

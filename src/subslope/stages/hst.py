@@ -47,6 +47,7 @@ def analyze_hst(
     device: str = "auto",
     nfw_scene: str = "nfw",
     tnfw_scene: str | None = "tnfw",
+    reference_scenes: Sequence | None = None,
     domain_csv=None,
     config: Mapping[str, Any] | None = None,
     loo_csv=None,
@@ -98,7 +99,7 @@ def analyze_hst(
         thr,
         (fig5_stem, fig6_stem),
         cdm_csv,
-        (nfw_scene, tnfw_scene),
+        (nfw_scene, tnfw_scene, *(reference_scenes or (None, None))),
         run_name=run_name,
         source=source,
         highlight=tuple(highlight),
@@ -341,6 +342,7 @@ def _figures(
     cdm = pd.read_csv(cdm_csv) if cdm_csv else None
     bn = cdm_band(cdm, scenes[0])
     bt = cdm_band(cdm, scenes[1]) if scenes[1] else None
+    refs = [cdm_band(cdm, s) if s else None for s in scenes[2:4]]
     fig6 = hst_combined(
         g,
         combined,
@@ -352,5 +354,6 @@ def _figures(
         source=source,
         kind="log_ratio",
         n_images=n_images,
+        reference_bands=tuple(None if b is None else b[1:] for b in refs),
     )
     save_figure(fig6, stems[1], run_name=run_name)

@@ -427,6 +427,7 @@ def write_summary(
     benchmarks: Mapping[str, Sequence] | None = None,
     nfw_scene: str = "nfw",
     tnfw_scene: str | None = "tnfw",
+    reference_scenes: Sequence[str | None] | None = None,
 ) -> Path:
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
     ``coverage.csv``, ``null_tests.csv``, ``halo_free.csv``, ``nsub_bias.csv``,
@@ -450,7 +451,9 @@ def write_summary(
         + reach_lines(folder / "hst_result.csv", signal_csv, (nfw_scene, tnfw_scene)),
         _signal_section(signal_csv)
         + _response_lines(folder, signal_csv, visibility_csv, halo_free_csv, run_name),
-        _cdm_section(folder, cdm_csv, (nfw_scene, tnfw_scene), visibility_csv),
+        _cdm_section(
+            folder, cdm_csv, (nfw_scene, tnfw_scene, *(reference_scenes or ())), visibility_csv
+        ),
         _calibration_section(folder, calibration_csv),
         _null_section(folder, null_csv),
         _halo_free_section(folder, halo_free_csv, bias_csv),
