@@ -63,13 +63,33 @@ def test_a_seed_that_cannot_run_is_refused_before_any(tmp_path, change, seeds, m
 
 
 ROWS = [
-    {"training": "a", "seed": "derived", "hst_gamma_mle": 1.4, "hst_lower": 1.1,
-     "hst_upper": 1.7, "hst_open": "lower", "nfw_median": 1.5, "tnfw_median": 1.3,
-     "spearman_rho": 0.9, "n_max": 13, "coverage_nmax": 0.7},
-    {"training": "b", "seed": 1, "hst_gamma_mle": 1.8, "hst_lower": 1.5,
-     "hst_upper": 2.1, "hst_open": "no", "nfw_median": 1.6, "tnfw_median": 1.4,
-     "spearman_rho": 0.85, "n_max": 13, "coverage_nmax": 0.69},
-]  # fmt: skip
+    {
+        "training": "a",
+        "seed": "derived",
+        "hst_gamma_mle": 1.4,
+        "hst_lower": 1.1,
+        "hst_upper": 1.7,
+        "hst_open": "lower",
+        "nfw_median": 1.5,
+        "tnfw_median": 1.3,
+        "spearman_rho": 0.9,
+        "n_max": 13,
+        "coverage_nmax": 0.7,
+    },
+    {
+        "training": "b",
+        "seed": 1,
+        "hst_gamma_mle": 1.8,
+        "hst_lower": 1.5,
+        "hst_upper": 2.1,
+        "hst_open": "no",
+        "nfw_median": 1.6,
+        "tnfw_median": 1.4,
+        "spearman_rho": 0.85,
+        "n_max": 13,
+        "coverage_nmax": 0.69,
+    },
+]
 
 
 def test_the_spread_sentence_counts_open_intervals():
@@ -79,8 +99,14 @@ def test_the_spread_sentence_counts_open_intervals():
 
 
 def _hst_result(path, mle, lower, upper, lower_at_edge=False, upper_at_edge=False):
-    row = {"n_images": 13, "gamma_mle": mle, "lower": lower, "upper": upper,
-           "lower_at_edge": lower_at_edge, "upper_at_edge": upper_at_edge}  # fmt: skip
+    row = {
+        "n_images": 13,
+        "gamma_mle": mle,
+        "lower": lower,
+        "upper": upper,
+        "lower_at_edge": lower_at_edge,
+        "upper_at_edge": upper_at_edge,
+    }
     pd.DataFrame([row]).to_csv(path, index=False)
     return path
 
@@ -143,8 +169,12 @@ def test_what_the_lenses_could_show_scales_the_signal_budget_to_the_stack(tmp_pa
 def test_the_workflow_reads_the_table_where_the_command_writes_it():
     common = (REPO_ROOT / "workflow" / "rules" / "common.smk").read_text()
     assert f'SEEDS_CSV = "{SEEDS_CSV}"' in common
-    command = summary_command(["config/a.yaml", "b.yaml"], snakefile="Snakefile", cores=3,
-                              extra=["--rerun-triggers", "mtime"])  # fmt: skip
+    command = summary_command(
+        ["config/a.yaml", "b.yaml"],
+        snakefile="Snakefile",
+        cores=3,
+        extra=["--rerun-triggers", "mtime"],
+    )
     assert command[-3:] == ["results/summary.md", "--rerun-triggers", "mtime"]
     assert command[3:8] == ["--configfile", "config/a.yaml", "--configfile", "b.yaml", "--cores"]
 
@@ -152,8 +182,18 @@ def test_the_workflow_reads_the_table_where_the_command_writes_it():
 def test_one_command_trains_a_seed_on_the_campaigns_shards(tiny_run, tmp_path):
     root = tiny_run.parent
     exe = Path(sys.executable).with_name("subslope")
-    command = [str(exe), "seeds", "--config", "config/tiny.yaml", "--seeds", "3",
-               "--folder", str(tmp_path), "--cores", "2"]  # fmt: skip
+    command = [
+        str(exe),
+        "seeds",
+        "--config",
+        "config/tiny.yaml",
+        "--seeds",
+        "3",
+        "--folder",
+        str(tmp_path),
+        "--cores",
+        "2",
+    ]
     env = dict(os.environ, OMP_NUM_THREADS="1", SUBSLOPE_DATA_MIRROR=str(shared_data_dir()))
     proc = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
@@ -172,3 +212,47 @@ def test_one_command_trains_a_seed_on_the_campaigns_shards(tiny_run, tmp_path):
     assert logs and all("taken from the cache" in p.read_text() for p in logs)
     assert not (seed_results / "signal_budget").exists()
     assert not (seed_results / "check_domain").exists()
+
+
+def test_a_comparison_that_could_not_be_made_is_not_checked(tmp_path):
+    """Five lenses against null scenes stacked 13 deep only: no comparison, so the
+    sentence says "not checked", never "outside the subhalo-free range"."""
+    hst = tmp_path / "hst.csv"
+    row = {
+        "n_images": 5,
+        "gamma_mle": 1.73,
+        "lower": 1.47,
+        "upper": 2.04,
+        "lower_at_edge": False,
+        "upper_at_edge": False,
+    }
+    pd.DataFrame([row]).to_csv(hst, index=False)
+    null = tmp_path / "null.csv"
+    pd.DataFrame(
+        [{"scene": "null_nosub", "n_per_stack": 13, "stack_mle_p16": 1.63, "stack_mle_p84": 1.84}]
+    ).to_csv(null, index=False)
+    text = "".join(meaning_lines(hst, null))
+    assert "not checked" in text and "no subhalo-free null scene is stacked 5 deep" in text
+    assert "outside" not in text and "it is a measurement" not in text
+
+
+def test_the_dense_subhalo_lens_is_named_only_when_it_is_in_the_set(tmp_path):
+    from subslope.stages.summary_hst import leave_one_out_lines
+
+    loo = tmp_path / "loo.csv"
+    rows = [
+        {
+            "left_out": f"MINE{k}",
+            "mle": 1.7,
+            "lower": 1.4,
+            "upper": 2.0,
+            "shift": 0.01 * k,
+            "n_images": 4,
+        }
+        for k in range(1, 6)
+    ]
+    pd.DataFrame(rows).to_csv(loo, index=False)
+    assert "SDSSJ0946+1006" not in "".join(leave_one_out_lines(loo))
+    rows[0]["left_out"] = "SDSSJ0946+1006"
+    pd.DataFrame(rows).to_csv(loo, index=False)
+    assert "published dense subhalo" in "".join(leave_one_out_lines(loo))

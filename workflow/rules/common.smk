@@ -1,5 +1,6 @@
 # Shared set-up: configuration validation and helpers used by every stage.
 
+import glob
 import os
 import re
 
@@ -230,6 +231,8 @@ for _name, _on in STAGE_ON.items():
 CAL = config["calibration"]
 CDM = config["cdm"]
 CDM_SCENES = subslope.config.cdm_scenes(config)  # both grids' (t)NFW scenes
+CONTROL_SCENES = [*CDM["field_controls"], *CDM["reference_controls"]]
+ABUNDANCE_SCENES = list(CDM["abundance"])
 RUN = config["run_name"]
 CAL_N = sorted(CAL["n_images"])
 GRID = config["inference"]["gamma_grid"]
@@ -241,6 +244,7 @@ def eval_scenes():
         CAL["single_scene"],
         CAL["stack_scene"],
         *CDM_SCENES,
+        *(CONTROL_SCENES + ABUNDANCE_SCENES if STAGE_ON["cdm_grid"] else []),
         *(config["null_tests"]["scenes"] if STAGE_ON["null_tests"] else []),
     ]
     simulated = {job["scene"] for job in SHARD_JOBS}
@@ -298,6 +302,26 @@ def budget_jobs():
     ]
 
 
+def contrast_groups():
+    """[scene, a_low, a_high, shard at a_low, shard at a_high] of shard 0 of every CDM
+    scene simulated at both multipliers of signal_budget.contrast (rule
+    concentration_contrast)."""
+    pair = config["signal_budget"]["contrast"]
+    if not pair:
+        return []
+    groups = []
+    for scene in CDM_SCENES:
+        at = {
+            float(job["multiplier"]): job["path"]
+            for job in SHARD_JOBS
+            if job["scene"] == scene and job["shard"] == 0
+        }
+        low, high = (float(a) for a in pair)
+        if low in at and high in at:
+            groups.append([scene, low, high, at[low], at[high]])
+    return groups
+
+
 def budget_path(job):
     """The signal-budget table of one shard job (mirrors the shard path)."""
     return (
@@ -345,7 +369,9 @@ def benchmark_files():
         out["cdm_grid"] = [
             "results/benchmarks/effective_slope.tsv",
             "results/benchmarks/measure_cdm_grid.tsv",
-        ]
+        ] + (["results/benchmarks/measure_epl_control.tsv"] if CONTROL_SCENES else [])
+        if ABUNDANCE_SCENES:
+            out["cdm_grid"].append("results/benchmarks/measure_abundance.tsv")
     if STAGE_ON["signal_budget"]:
         out["signal_budget"] = [
             budget_path(job)
@@ -353,6 +379,8 @@ def benchmark_files():
             .replace(".csv", ".tsv")
             for job in budget_jobs()
         ] + ["results/benchmarks/summarize_signal_budget.tsv"]
+        if contrast_groups():
+            out["signal_budget"].append("results/benchmarks/concentration_contrast.tsv")
     if null_tests_on():
         out["null_tests"] = ["results/benchmarks/null_tests.tsv"]
     if halo_free_on():
@@ -489,6 +517,72 @@ def visibility_on():
     return bool(VISIBILITY_JOBS)
 
 
+def field_subhalo_free():
+    """{shard index: the a = 1 subhalo-free re-render of the field grid's NFW shard}: the
+    common-draws sets without subhalos that controls and abundance scenes pair with."""
+    return {
+        job["shard"]: subhalo_free_path(job)
+        for job in VISIBILITY_JOBS
+        if job["scene"] == CDM["nfw_scene"] and float(job["multiplier"]) == 1.0
+    }
+
+
+def abundance_groups():
+    """[scene, profile, N_max, profiles files, subhalo-free profiles files] of every scene
+    of cdm.abundance at a = 1 (rule measure_abundance)."""
+    free = field_subhalo_free()
+    groups = []
+    for scene in ABUNDANCE_SCENES:
+        sc, _ = subslope.simulation.resolve.resolved_scene(config, scene)
+        jobs = [
+            job
+            for job in SHARD_JOBS
+            if job["scene"] == scene and float(job["multiplier"]) == 1.0
+        ]
+        removed = [free[job["shard"]] for job in jobs if job["shard"] in free]
+        groups.append(
+            [
+                scene,
+                sc.subhalos.profile,
+                int(sc.subhalos.count.support[1]),
+                [profile_path(job) for job in jobs],
+                removed if len(removed) == len(jobs) else [],
+            ]
+        )
+    return groups
+
+
+def control_groups():
+    """[grid, scene, gamma, profiles files, subhalo-free profiles files] of every matched
+    EPL control (rule measure_epl_control): each control shard pairs with the a = 1
+    subhalo-free re-render of its grid's NFW shard of the same index (none without the
+    visibility check)."""
+    groups = []
+    for grid, (nfw, _) in subslope.config.cdm_grids(config).items():
+        for scene in CDM[f"{grid}_controls"]:
+            sc, _ = subslope.simulation.resolve.resolved_scene(config, scene)
+            jobs = [job for job in SHARD_JOBS if job["scene"] == scene]
+            free = {
+                job["shard"]: subhalo_free_path(job)
+                for job in VISIBILITY_JOBS
+                if job["scene"] == nfw and float(job["multiplier"]) == 1.0
+            }
+            removed = [free[job["shard"]] for job in jobs if job["shard"] in free]
+            groups.append(
+                [
+                    grid,
+                    scene,
+                    sc.subhalos.fixed_gamma,
+                    [profile_path(job) for job in jobs],
+                    removed if len(removed) == len(jobs) else [],
+                ]
+            )
+    return groups
+
+
+# The records of studies/concentration_classifier.py (run by hand; no rule makes them).
+CLASSIFIER_DIR = "results/studies/concentration_classifier"
+
 # The table of trainings that `subslope seeds` writes (subslope.campaigns.seeds.SEEDS_CSV).
 SEEDS_CSV = "results/seeds/seeds.csv"
 
@@ -511,11 +605,20 @@ def summary_inputs(wildcards):
         inputs["domain"] = rules.check_domain.output.csv
     if STAGE_ON["cdm_grid"]:
         inputs["cdm"] = rules.measure_cdm_grid.output.csv
+        if CONTROL_SCENES:
+            inputs["epl_control"] = rules.measure_epl_control.output.csv
+        if ABUNDANCE_SCENES:
+            inputs["abundance"] = rules.measure_abundance.output.csv
     if STAGE_ON["calibrate"]:
         inputs["calibration"] = rules.summarize_coverage.output.csv
         inputs["trend"] = rules.plot_validation.output.trend
     if STAGE_ON["signal_budget"]:
         inputs["signal_budget"] = rules.summarize_signal_budget.output.csv
+        if contrast_groups():
+            inputs["contrast"] = rules.concentration_contrast.output.csv
+    classifier = sorted(glob.glob(f"{CLASSIFIER_DIR}/*.json"))
+    if STAGE_ON["cdm_grid"] and classifier:
+        inputs["classifier"] = classifier  # studies/concentration_classifier.py writes them
     if STAGE_ON["hst"] and os.path.exists(SEEDS_CSV):
         inputs["seeds"] = SEEDS_CSV  # `subslope seeds` writes it; no rule makes it
     return inputs

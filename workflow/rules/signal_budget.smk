@@ -60,3 +60,29 @@ rule summarize_signal_budget:
         run_name=RUN,
     script:
         "../scripts/summarize_signal_budget.py"
+
+
+# How much the images can say about the concentration, from above: the refitted Delta
+# chi^2 between the a_high and the a_low image of the same draw (signal_budget.contrast).
+rule concentration_contrast:
+    input:
+        shards=[path for group in contrast_groups() for path in group[3:]],
+    output:
+        csv=update("results/signal_budget/concentration_contrast.csv"),
+    log:
+        "logs/concentration_contrast.log",
+    benchmark:
+        "results/benchmarks/concentration_contrast.tsv"
+    conda:
+        "../envs/subslope.yaml"
+    threads: 1
+    resources:
+        mem_mb=3000,
+        runtime=120,
+    params:
+        groups=contrast_groups(),
+        images=config["signal_budget"]["images"],
+        mask_factor=config["training"]["mask_factor"],
+        iterations=config["signal_budget"]["refit_iterations"],
+    script:
+        "../scripts/concentration_contrast.py"

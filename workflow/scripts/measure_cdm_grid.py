@@ -22,6 +22,7 @@ try:
         reference_scenes=snakemake.params.reference_scenes,
         band=tuple(snakemake.params.band),
         effective_slopes_csv=snakemake.input.effective_slopes,
+        control_csv=snakemake.input.controls or None,
     )
     logging.info("concentration grid:\n%s", table.to_string())
 except Exception:

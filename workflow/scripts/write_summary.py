@@ -34,6 +34,10 @@ try:
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
         reference_scenes=snakemake.params.reference_scenes,
+        control_csv=inputs.get("epl_control"),
+        contrast_csv=inputs.get("contrast"),
+        abundance_csv=inputs.get("abundance"),
+        classifier_json=list(inputs.get("classifier") or []),
     )
     record = write_run_record(
         snakemake.output.run,

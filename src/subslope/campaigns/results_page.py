@@ -111,11 +111,25 @@ def _cdm(results: Path) -> list[str]:
         )
         out.append(
             f"The CDM subhalos move the estimator's stack γ_MLE (paired shift against the "
-            f"same sets without them, Wilcoxon p < 0.05): {moved}. Compare each shift with "
-            "the signal the images hold (results/response.csv): a shift that does not grow "
-            "with the signal is the estimator's limit, not the data's."
+            f"same sets without them, Wilcoxon p < 0.05): {moved}. The signal these sets "
+            "hold (results/response.csv) bounds detection, not what the images can say "
+            "about the concentration: the concentration contrast does."
         )
     return out
+
+
+def _figure4(results: Path) -> list[str]:
+    """Figure 4's verdict per grid (``figure4.csv``, written by the summary from
+    :func:`subslope.stages.cdm_grid.figure4_verdicts`)."""
+    if not (results / "figure4.csv").is_file():
+        return (
+            ["Figure 4: not checked (figure4.csv is missing)."]
+            if _rows(results, "cdm_prediction.csv")
+            else []
+        )
+    rows = _rows(results, "figure4.csv")
+    parts = "; ".join(f"{r['grid']} grid ({r['nfw_scene']}): {r['verdict']}" for r in rows)
+    return [f"Figure 4, from its matched controls and the concentration contrast: {parts}."]
 
 
 def _reference(results: Path) -> list[str]:
@@ -132,8 +146,8 @@ def _reference(results: Path) -> list[str]:
         for r in rows
     )
     return [
-        "Figure 4's readings against the effective slope of the sets' subhalos (what each "
-        f"point would read if the estimator read the slope the images resolve): {parts}."
+        "Figure 4's readings against the effective slope of the sets' subhalos (a guide, "
+        f"not what an estimator trained on EPL populations must read): {parts}."
     ]
 
 
@@ -209,7 +223,7 @@ def _domain(results: Path) -> list[str]:
 def verdicts(results) -> list[str]:
     """One sentence per part of the campaign, computed from the CSVs of ``results``."""
     results = Path(results)
-    parts = (_in_distribution, _signal, _cdm, _reference, _hst, _seeds, _domain)
+    parts = (_in_distribution, _signal, _cdm, _figure4, _reference, _hst, _seeds, _domain)
     return [line for part in parts for line in part(results)]
 
 

@@ -190,6 +190,65 @@ STAGE_NEEDS: dict[str, tuple[str, ...]] = {
 }
 
 
+def _control_problems(config: Mapping[str, Any], key: str, name: str, nfw: str) -> list[str]:
+    """A matched EPL control ``name`` must carry EPL subhalos of one slope
+    (``subhalos.fixed_gamma``), draw the CDM sets (``common_draws``) and have shards of
+    the size of its grid's NFW scene ``nfw``, no more of them (each pairs with that
+    scene's shard of the same index)."""
+    from subslope.simulation.resolve import resolved_scene
+
+    sc, _ = resolved_scene(config, name)
+    problems = []
+    if sc.subhalos.fixed_gamma is None or not sc.common_draws:
+        problems.append(
+            f"config key {key} = {name!r}: a matched EPL control needs "
+            f"scenes.{name}.subhalos.fixed_gamma (EPL subhalos of one slope) and "
+            f"scenes.{name}.common_draws: true"
+        )
+    sim = config["simulation"]["scenes"]
+    if nfw in sim and (
+        sim[name]["images_per_shard"] != sim[nfw]["images_per_shard"]
+        or sim[name]["n_shards"] > sim[nfw]["n_shards"]
+    ):
+        problems.append(
+            f"config key {key} = {name!r}: simulation.scenes.{name} "
+            f"({sim[name]['n_shards']} x {sim[name]['images_per_shard']}) must have the "
+            f"images_per_shard of simulation.scenes.{nfw} "
+            f"({sim[nfw]['n_shards']} x {sim[nfw]['images_per_shard']}) and at most as "
+            "many shards: each control shard pairs with that scene's shard"
+        )
+    return problems
+
+
+def _abundance_problems(config: Mapping[str, Any], key: str, name: str) -> list[str]:
+    """A scene of the abundance series must be a CDM scene simulated at a = 1 with a
+    subhalo count prior U{0, N_max}, in shards of the field grid's NFW scene's size."""
+    from subslope.simulation.resolve import resolved_scene, scene_multipliers
+
+    sc, _ = resolved_scene(config, name)
+    mults = scene_multipliers(config, sc) or ()
+    count = sc.subhalos.count
+    problems = []
+    if sc.subhalos.profile == "epl" or 1.0 not in [float(a) for a in mults]:
+        problems.append(
+            f"config key {key} = {name!r}: the abundance series needs NFW or tNFW subhalos "
+            f"simulated at a = 1 (multipliers {list(mults)})"
+        )
+    if count.dist != "uniform_int" or count.support[0] != 0:
+        problems.append(
+            f"config key {key} = {name!r}: scenes.{name}.subhalos.count must be a "
+            "uniform_int prior from 0 (U{0, N_max})"
+        )
+    sim, nfw = config["simulation"]["scenes"], config["cdm"]["nfw_scene"]
+    if nfw in sim and sim[name]["images_per_shard"] != sim[nfw]["images_per_shard"]:
+        problems.append(
+            f"config key {key} = {name!r}: simulation.scenes.{name}.images_per_shard must "
+            f"equal simulation.scenes.{nfw}.images_per_shard: each shard pairs with that "
+            "scene's subhalo-free re-render"
+        )
+    return problems
+
+
 #: Names of the concentration grids (figure 4's panels) in :func:`cdm_grids`.
 CDM_GRIDS = ("field", "reference")
 
@@ -327,6 +386,20 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
                 "config key cdm.reference_tnfw_scene is set but cdm.reference_nfw_scene is "
                 "null: the reference grid needs its NFW scene"
             )
+        grids = cdm_grids(config)
+        for grid in ("field", "reference"):
+            for k, name in enumerate(cdm[f"{grid}_controls"]):
+                key = f"cdm.{grid}_controls[{k}]"
+                if grid not in grids:
+                    problems.append(
+                        f"config key {key} = {name!r}: the reference grid is off "
+                        "(cdm.reference_nfw_scene: null)"
+                    )
+                elif need_scene(key, name):
+                    problems += _control_problems(config, key, name, grids[grid][0])
+        for k, name in enumerate(cdm["abundance"]):
+            if need_scene(f"cdm.abundance[{k}]", name):
+                problems += _abundance_problems(config, f"cdm.abundance[{k}]", name)
     if stages["null_tests"]:
         for k, name in enumerate(config["null_tests"]["scenes"]):
             need_scene(f"null_tests.scenes[{k}]", name)

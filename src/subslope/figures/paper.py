@@ -71,6 +71,7 @@ def concentration_grid(
     percentiles: tuple[float, float, float] = (16, 50, 84),
     reference_nfw=None,
     reference_tnfw=None,
+    controls: Sequence[tuple[float, float]] = (),
     second: Mapping | None = None,
     titles: tuple[str, str] = (
         "(t)NFW subhalos over the whole field",
@@ -89,9 +90,11 @@ def concentration_grid(
     16–84% range of the stack MLEs (the spread of the measurement from one set of 13
     lenses to another). ``a = cdm`` (1) is marked as the CDM prediction. ``hst``:
     optional ``(mle, lo, hi)`` of the real stack, drawn as a horizontal band.
-    ``second``: a second grid on the same multipliers (keys ``mles_nfw``, ``mles_tnfw``,
-    ``reference_nfw``, ``reference_tnfw``), drawn as a panel to the right on a shared
-    γ axis; ``titles`` name the two panels.
+    ``controls``: ``(γ, median)`` of the matched EPL controls (what a power-law
+    population of slope γ reads on the same sets), drawn as dotted lines. ``second``: a
+    second grid on the same multipliers (keys ``mles_nfw``, ``mles_tnfw``,
+    ``reference_nfw``, ``reference_tnfw``, ``controls``), drawn as a panel to the right
+    on a shared γ axis; ``titles`` name the two panels.
     """
     a = np.asarray(multipliers, dtype=np.float64).ravel()
     if a.size == 0 or np.any(a <= 0):
@@ -102,6 +105,7 @@ def concentration_grid(
             "mles_tnfw": mles_tnfw,
             "reference_nfw": reference_nfw,
             "reference_tnfw": reference_tnfw,
+            "controls": controls,
         }
     ]
     if second is not None:
@@ -126,6 +130,24 @@ def _grid_panel(ax, a, panel: Mapping, hst, cdm: float, percentiles) -> None:
     for label, key, color in (("NFW", "reference_nfw", C_NFW), ("tNFW", "reference_tnfw", C_TNFW)):
         if panel.get(key) is not None:
             _draw_reference(ax, a, panel[key], label, color)
+    for k, (gamma, median) in enumerate(panel.get("controls") or ()):
+        ax.axhline(
+            median,
+            color="0.45",
+            ls=":",
+            lw=1.0,
+            label="matched EPL controls (median)" if k == 0 else None,
+        )
+        ax.text(
+            1.0,
+            median,
+            f" EPL γ = {gamma:g}",
+            transform=ax.get_yaxis_transform(),
+            ha="left",
+            va="center",
+            fontsize=7,
+            color="0.35",
+        )
     for label, m, color, marker, shift in series:
         m = np.asarray(m, dtype=np.float64)
         if m.ndim != 2 or m.shape[0] != a.size:

@@ -106,6 +106,8 @@ def sample_macro(
         if on[component]:
             out[name] = draw
     gamma_sets = scene.subhalos.gamma.sample(rng, n_sets)
+    if scene.subhalos.fixed_gamma is not None:  # drawn first: the stream stays aligned
+        gamma_sets = np.full(n_sets, scene.subhalos.fixed_gamma)
     if "n_sub" in out:
         out["n_sub"] = out["n_sub"].astype(np.int64)
     if scene.has_label:

@@ -22,10 +22,13 @@ def resolved_scene(config: Mapping[str, Any], name: str) -> tuple[Scene, dict[st
 
 
 def scene_multipliers(config: Mapping[str, Any], scene: Scene) -> tuple[float, ...] | None:
-    """Multipliers simulated for a CDM scene (None for scenes without concentrations)."""
+    """Multipliers simulated for a CDM scene (None for scenes without concentrations):
+    its own ``simulation.scenes.<name>.multipliers``, else ``simulation.multipliers``,
+    else the scene's ``concentration.multipliers``."""
     if not scene.uses_concentration:
         return None
-    mults = config["simulation"].get("multipliers")
+    own = ((config["simulation"].get("scenes") or {}).get(scene.name) or {}).get("multipliers")
+    mults = own or config["simulation"].get("multipliers")
     return tuple(float(a) for a in (mults if mults else scene.concentration.multipliers))
 
 

@@ -119,9 +119,39 @@ def preset(name: str) -> dict[str, Any]:
     return _merge(PAPER_SCENE, PRESETS.get(name, {}), f"scenes.{name}")
 
 
+#: Scene keys a preset does not hold: they appear in a scene's mapping (and its shards'
+#: hash) only where a config sets them. ``common_draws``: the shards draw the CDM scenes'
+#: sets (seed keyed by :data:`subslope.simulation.shard.CDM_DRAWS`); ``subhalos.
+#: fixed_gamma``: every set's label γ, drawn from ``subhalos.gamma`` and then replaced,
+#: so that the scene's random streams stay those of a scene with a free label (the
+#: matched EPL control of figure 4).
+OPTIONAL_KEYS = (("common_draws",), ("subhalos", "fixed_gamma"))
+
+
 def merge_onto_preset(name: str, spec: Mapping[str, Any] | None, key: str) -> dict[str, Any]:
     """The complete mapping of scene ``name``: ``spec`` merged onto its preset, after the
-    named lens-light prior ``spec.lens_light.prior`` (:data:`LENS_LIGHT_PRIORS`)."""
+    named lens-light prior ``spec.lens_light.prior`` (:data:`LENS_LIGHT_PRIORS`); the
+    :data:`OPTIONAL_KEYS` that ``spec`` sets are added."""
+    if isinstance(spec, Mapping):
+        spec = copy.deepcopy(dict(spec))
+        optional = []
+        for path in OPTIONAL_KEYS:
+            node = spec
+            for part in path[:-1]:
+                node = node.get(part) if isinstance(node, Mapping) else None
+            if isinstance(node, dict) and path[-1] in node:
+                optional.append((path, node.pop(path[-1])))
+        merged = _merge_preset(name, spec, key)
+        for path, value in optional:
+            node = merged
+            for part in path[:-1]:
+                node = node[part]
+            node[path[-1]] = value
+        return merged
+    return _merge_preset(name, spec, key)
+
+
+def _merge_preset(name: str, spec: Mapping[str, Any] | None, key: str) -> dict[str, Any]:
     base = preset(name)
     light = (spec or {}).get("lens_light") if isinstance(spec, Mapping) else None
     if isinstance(light, Mapping) and "prior" in light:
@@ -330,6 +360,7 @@ class SubhaloSpec:
     placement: str
     threshold_fraction: float
     sheet_centre: str = "mass_centroid"
+    fixed_gamma: float | None = None
 
 
 @dataclass(frozen=True)
@@ -369,6 +400,7 @@ class Scene:
     los: LosSpec
     concentration: ConcentrationSpec
     sky: SkySpec
+    common_draws: bool = False
 
     @property
     def has_label(self) -> bool:
@@ -434,6 +466,7 @@ class Scene:
             _los_spec(d["los"], f"{key}.los"),
             _concentration_spec(d["concentration"], f"{key}.concentration"),
             SkySpec(_prior(d["sky"], "level", f"{key}.sky")),
+            _bool(d.get("common_draws", False), f"{key}.common_draws"),
         )
 
 
@@ -544,7 +577,22 @@ def _subhalo_spec(sub: Mapping[str, Any], k: str) -> SubhaloSpec:
             sub["threshold_fraction"], f"{k}.threshold_fraction", 0.0, 1.0, True, True
         ),
         sheet_centre=_choice(sub["sheet_centre"], SHEET_CENTRES, f"{k}.sheet_centre"),
+        fixed_gamma=_fixed_gamma(sub, k, lo, hi),
     )
+
+
+def _fixed_gamma(sub: Mapping[str, Any], k: str, lo: float, hi: float) -> float | None:
+    """``subhalos.fixed_gamma`` (:data:`OPTIONAL_KEYS`): None, or a label inside the
+    ``gamma`` prior's bounds for EPL subhalos."""
+    value = sub.get("fixed_gamma")
+    if value is None:
+        return None
+    if sub["profile"] != "epl":
+        raise SceneError(
+            f"config key {k}.fixed_gamma = {value!r} needs EPL subhalos ({k}.profile: epl), "
+            f"got profile {sub['profile']!r}"
+        )
+    return _real(value, f"{k}.fixed_gamma", lo, hi)
 
 
 def _los_spec(lo_d: Mapping[str, Any], k: str) -> LosSpec:

@@ -76,6 +76,7 @@ __all__ = [
     "scene_id",
     "shard_seed_sequence",
     "CDM_DRAWS",
+    "draws_name",
     "build_psf",
     "build_instrument",
     "render_settings",
@@ -94,6 +95,14 @@ STREAMS = ("macro", "sources", "subhalos", "los", "noise")
 
 
 # ------------------------------------------------------------------------- naming, seeds
+def draws_name(config: Mapping[str, Any], scene: str, multiplier: float | None) -> str:
+    """The name a shard of ``scene`` keys its seed by: :data:`CDM_DRAWS` for the CDM
+    scenes (a multiplier) and the scenes with ``common_draws: true``, else its own."""
+    if multiplier is not None or resolved_scene(config, scene)[0].common_draws:
+        return CDM_DRAWS
+    return scene
+
+
 def scene_id(name: str) -> int:
     """Stable 64-bit integer of a scene name (first 8 bytes of its SHA-256)."""
     return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
@@ -420,7 +429,7 @@ def simulate_shard(
     if out_path.exists() and not overwrite:
         raise FileExistsError(f"shard {out_path} already exists; delete it or pass overwrite=True")
     n, spec, multiplier = _shard_request(config, scene, shard, multiplier)
-    ss = shard_seed_sequence(config["seed"], scene if multiplier is None else CDM_DRAWS, shard)
+    ss = shard_seed_sequence(config["seed"], draws_name(config, scene, multiplier), shard)
     label = "" if multiplier is None else f" (a = {multiplier:g})"
     log.info("simulating %s shard %d%s: %d images -> %s", scene, shard, label, n, out_path)
     out = simulate_images(config, scene, n, ss, multiplier=multiplier, progress=progress)

@@ -1,7 +1,8 @@
 """Stage ``cdm_grid``: stack MLEs of the simulated CDM sets per concentration
-multiplier, their bands, the sets' effective subhalo slopes (the reference each reading
-should approach, :mod:`subslope.physics.effective_slope`) and figure 4 (rules
-effective_slope and measure_cdm_grid)."""
+multiplier, their bands, the sets' effective subhalo slopes (a guide to what each
+reading could approach, :mod:`subslope.physics.effective_slope`), the matched EPL
+controls (what power-law populations of known slope read on the same sets) and figure 4
+(rules effective_slope, measure_epl_control and measure_cdm_grid)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,14 @@ __all__ = [
     "effective_slope_table",
     "measure_cdm_grid",
     "cdm_band",
+    "CONTROL_COLUMNS",
+    "measure_epl_control",
+    "control_slope",
+    "paired_reading",
+    "ABUNDANCE_COLUMNS",
+    "measure_abundance",
+    "FIGURE4_COLUMNS",
+    "figure4_verdicts",
 ]
 
 #: Columns of ``cdm_grid.csv``, one row per (scene, multiplier).
@@ -35,6 +44,30 @@ GRID_COLUMNS = (
     "hi",
     "reference",
     "distance",
+)
+
+#: Columns of ``epl_control.csv``, one row per matched EPL control scene: its grid, its
+#: slope, the median and band of its stack MLEs, and the paired shift against the same
+#: sets without subhalos (NaN without the subhalo-free re-renders).
+CONTROL_COLUMNS = (
+    "grid",
+    "scene",
+    "gamma",
+    "n_sets",
+    "median",
+    "lo",
+    "hi",
+    "subhalo_free_p50",
+    "shift_mean",
+    "shift_mean_se",
+)
+
+#: Columns of ``abundance.csv``, one row per CDM scene of the abundance series.
+ABUNDANCE_COLUMNS = (
+    "scene",
+    "profile",
+    "n_sub_max",
+    *CONTROL_COLUMNS[3:],
 )
 
 #: Columns of ``effective_slope.csv``, one row per simulated set.
@@ -149,6 +182,7 @@ def measure_cdm_grid(
     source: str | None = None,
     effective_slopes_csv=None,
     reference_scenes: Sequence | None = None,
+    control_csv=None,
 ):
     """Stack MLEs (one per simulated set) for every (scene, multiplier) of ``files``.
 
@@ -159,11 +193,20 @@ def measure_cdm_grid(
     effective_slope) ``reference``, the median effective slope of the sets, and
     ``distance`` = median − reference) and figure 4 with the reference curves. Returns
     the table. ``reference_scenes``: ``(nfw, tnfw)`` of the reference code's sets
-    (``cdm.reference_*_scene``), measured alike and drawn as figure 4's second panel.
+    (``cdm.reference_*_scene``), measured alike and drawn as figure 4's second panel;
+    ``control_csv``: the matched EPL controls (:func:`measure_epl_control`), drawn in
+    their grid's panel.
     """
     import pandas as pd
 
     slopes = pd.read_csv(effective_slopes_csv) if effective_slopes_csv else None
+    control = pd.read_csv(control_csv) if control_csv else None
+
+    def controls(grid: str) -> list[tuple[float, float]]:
+        if control is None:
+            return []
+        sel = control[control["grid"] == grid]
+        return list(zip(sel["gamma"].astype(float), sel["median"].astype(float)))
 
     from subslope.figures.paper import concentration_grid
 
@@ -194,6 +237,7 @@ def measure_cdm_grid(
         percentiles=(band[0], 50, band[1]),
         reference_nfw=_reference(slopes, nfw_scene, mults, band),
         reference_tnfw=_reference(slopes, tnfw_scene, mults, band) if tnfw_scene else None,
+        controls=controls("field"),
         second=None
         if ref_nfw is None
         else {
@@ -201,6 +245,7 @@ def measure_cdm_grid(
             "mles_tnfw": arrays.get(f"mles_{ref_tnfw}") if ref_tnfw else None,
             "reference_nfw": _reference(slopes, ref_nfw, mults, band),
             "reference_tnfw": _reference(slopes, ref_tnfw, mults, band) if ref_tnfw else None,
+            "controls": controls("reference"),
         },
     )
     save_figure(fig, fig_stem, run_name=run_name)
@@ -216,3 +261,198 @@ def cdm_band(table, scene: str, multiplier: float = 1.0) -> tuple[float, float, 
         return None
     r = sel.iloc[0]
     return float(r["median"]), float(r["lo"]), float(r["hi"])
+
+
+def paired_reading(files: Sequence, removed: Sequence, band=(16, 84)) -> dict:
+    """The stack γ_MLE of the sets in the profiles ``files``: ``n_sets``, ``median``,
+    ``lo``, ``hi`` (``band`` percentiles) and, with ``removed`` (the same sets re-rendered
+    without subhalos; empty: none), ``subhalo_free_p50`` and the paired shift's mean and
+    standard error (``shift_mean``, ``shift_mean_se``; NaN without ``removed``)."""
+    from subslope.stages.null_tests.visibility import paired_stack_mles
+
+    mle = set_stacks(read_profiles(list(files)))["mle"]
+    free = np.full(mle.size, np.nan)
+    if removed:
+        mle, free = paired_stack_mles(files, removed)
+    lo, med, hi = np.percentile(mle, [band[0], 50, band[1]])
+    shift = mle - free
+    n = int(mle.size)
+    return {
+        "n_sets": n,
+        "median": med,
+        "lo": lo,
+        "hi": hi,
+        "subhalo_free_p50": float(np.median(free)),
+        "shift_mean": float(shift.mean()),
+        "shift_mean_se": float(shift.std(ddof=1) / np.sqrt(n)) if n > 1 else np.nan,
+    }
+
+
+def measure_epl_control(groups: Sequence, out_csv, *, band=(16, 84)):
+    """Rule measure_epl_control: the stack MLEs of every matched EPL control.
+
+    ``groups``: ``(grid, scene, gamma, profiles files, subhalo-free profiles files)``, the
+    second list the re-renders without subhalos of the CDM shards whose sets the control
+    draws (``common_draws``; empty: no paired shift). Writes ``out_csv``
+    (:data:`CONTROL_COLUMNS`) and returns the table."""
+    import pandas as pd
+
+    rows = [
+        {"grid": grid, "scene": scene, "gamma": float(gamma), **paired_reading(f, r, band)}
+        for grid, scene, gamma, f, r in groups
+    ]
+    table = pd.DataFrame(rows, columns=list(CONTROL_COLUMNS)).sort_values(["grid", "gamma"])
+    write_text(out_csv, table.to_csv(index=False))
+    return table
+
+
+def measure_abundance(
+    groups: Sequence,
+    out_csv,
+    fig_stem,
+    *,
+    z_lens: float,
+    field_arcsec: float,
+    run_name: str,
+    band=(16, 84),
+):
+    """Rule measure_abundance: the a = 1 reading and paired shift of CDM sets whose
+    subhalo count prior is U{0, N_max}, for several N_max (``groups``: ``(scene, profile,
+    N_max, profiles files, subhalo-free profiles files)``). Writes ``out_csv``
+    (:data:`ABUNDANCE_COLUMNS`) and the figure, marking the N_max whose mean count
+    equals what a CDM host at ``z_lens`` projects into the square field of side
+    ``field_arcsec`` (:mod:`subslope.physics.abundance`, paltas's Σ_sub prior, ± 1σ).
+    Returns the table."""
+    import pandas as pd
+
+    from subslope.figures.abundance import abundance_figure
+    from subslope.physics.abundance import uniform_count_max
+
+    rows = [
+        {"scene": scene, "profile": profile, "n_sub_max": int(n_max), **paired_reading(f, r, band)}
+        for scene, profile, n_max, f, r in groups
+    ]
+    table = pd.DataFrame(rows, columns=list(ABUNDANCE_COLUMNS))
+    table = table.sort_values(["profile", "n_sub_max"])
+    write_text(out_csv, table.to_csv(index=False))
+    expected = uniform_count_max(z_lens, field_arcsec)
+    fig = abundance_figure(table, expected=expected, run_name=run_name, source=str(out_csv))
+    save_figure(fig, fig_stem, run_name=run_name)
+    return table
+
+
+def control_slope(control, grid: str, reading: float) -> float | None:
+    """The slope γ of the matched EPL control of ``grid`` that reads ``reading``: linear
+    interpolation of γ in the controls' medians. None when the medians do not rise with γ
+    (no reading of that grid maps to a slope) or ``reading`` lies outside their range."""
+    if control is None or not len(control):
+        return None
+    sel = control[control["grid"] == grid].sort_values("gamma")
+    med, g = sel["median"].to_numpy(float), sel["gamma"].to_numpy(float)
+    if med.size < 2 or not np.all(np.diff(med) > 0):
+        return None
+    if not med[0] <= reading <= med[-1]:
+        return None
+    return float(np.interp(reading, med, g))
+
+
+#: Columns of ``figure4.csv`` (the summary's folder): one row per grid with the numbers
+#: that decide its verdict and the verdict itself.
+FIGURE4_COLUMNS = (
+    "grid",
+    "nfw_scene",
+    "rises",
+    "rise",
+    "half_width",
+    "shift_rise",
+    "shift_rise_se",
+    "controls_rise",
+    "maps_to",
+    "contrast_stack",
+    "classifier_auc_stack",
+    "verdict",
+)
+
+#: A 13-stack Δχ² between a_low and a_high below this holds no usable information.
+CONTRAST_FLOOR = 1.0
+#: A stack AUC of the direct classifier below this does not separate the two multipliers.
+AUC_FLOOR = 0.6
+
+
+def figure4_verdicts(
+    grid_table,
+    grids: Mapping[str, tuple],
+    *,
+    control=None,
+    visibility=None,
+    contrast=None,
+    classifier: Mapping[str, float] | None = None,
+    a_pair: tuple[float, float] = (1.0, 8.0),
+) -> list[dict]:
+    """The verdict on figure 4 of each grid (:data:`FIGURE4_COLUMNS`), from the tables
+    that measure it, never from the distance to the effective slope:
+
+    - ``rises``: the NFW medians rise with a (each at least the previous − 0.02) and the
+      a_high median exceeds the a_low one by more than the a_low half-width (``rise``,
+      ``half_width``); ``shift_rise``: paired shift at a_high − at a_low (± ``_se``);
+    - ``controls_rise``: the matched EPL controls' medians rise with γ, and ``maps_to``:
+      the control slope of the NFW a_low reading (:func:`control_slope`);
+    - ``contrast_stack``: the ideal observer's refitted Δχ² between a_high and a_low in a
+      13-stack (the concentration contrast); ``classifier_auc_stack``: the direct
+      classifier's held-out stack AUC (``classifier[nfw scene]``, when studied).
+
+    The verdict: "no reading maps to a slope" where the controls do not rise; else "the
+    images cannot order a" where the contrast is below :data:`CONTRAST_FLOOR` or the
+    classifier's stack AUC below :data:`AUC_FLOOR`; else "the estimator reads a" where
+    it rises; else "the estimator misses what the images hold"; "not checked" where a
+    needed table is missing."""
+    lo_a, hi_a = a_pair
+    out = []
+    for grid, (nfw, _) in grids.items():
+        sel = grid_table[grid_table["scene"] == nfw].sort_values("multiplier")
+        med = sel["median"].to_numpy(float)
+        at = {float(a): r for a, r in zip(sel["multiplier"], sel.itertuples())}
+        row = {"grid": grid, "nfw_scene": nfw, "rises": None, "maps_to": None}
+        if lo_a in at and hi_a in at:
+            r_lo, r_hi = at[lo_a], at[hi_a]
+            row["rise"] = float(r_hi.median - r_lo.median)
+            row["half_width"] = float(0.5 * (r_lo.hi - r_lo.lo))
+            ordered = bool(np.all(np.diff(med) >= -0.02))
+            row["rises"] = ordered and row["rise"] > row["half_width"]
+        if visibility is not None and len(visibility):
+            vis = visibility[visibility["scene"] == nfw]
+            v = {float(a): r for a, r in zip(vis["multiplier"], vis.itertuples())}
+            if lo_a in v and hi_a in v:
+                row["shift_rise"] = float(v[hi_a].shift_mean - v[lo_a].shift_mean)
+                row["shift_rise_se"] = float(np.hypot(v[hi_a].shift_mean_se, v[lo_a].shift_mean_se))
+        if control is not None and len(control[control["grid"] == grid]):
+            c = control[control["grid"] == grid].sort_values("gamma")["median"].to_numpy(float)
+            row["controls_rise"] = bool(c.size > 1 and np.all(np.diff(c) > 0))
+            if lo_a in at:
+                row["maps_to"] = control_slope(control, grid, float(at[lo_a].median))
+        if contrast is not None and len(contrast):
+            cs = contrast[(contrast["scene"] == nfw) & np.isclose(contrast["a_high"], hi_a)]
+            if len(cs):
+                row["contrast_stack"] = float(cs["stack_refit"].iloc[0])
+        if classifier and nfw in classifier:
+            row["classifier_auc_stack"] = float(classifier[nfw])
+        row["verdict"] = _verdict(row)
+        out.append(row)
+    return out
+
+
+def _verdict(row: Mapping) -> str:
+    if row.get("rises") is None or row.get("controls_rise") is None:
+        return "not checked (a table is missing)"
+    if not row["controls_rise"]:
+        return "no reading maps to a slope (the matched controls do not rise with γ)"
+    contrast, auc = row.get("contrast_stack"), row.get("classifier_auc_stack")
+    if (contrast is not None and contrast < CONTRAST_FLOOR) or (
+        auc is not None and auc < AUC_FLOOR
+    ):
+        return "the images cannot order a (ideal observer or direct classifier)"
+    if row["rises"]:
+        return "the estimator reads a"
+    if contrast is None and auc is None:
+        return "not checked (no concentration contrast or classifier)"
+    return "the estimator misses what the images hold"
