@@ -88,11 +88,16 @@ def test_paper_dag_through_the_slurm_profile(tmp_path, data_dir):
     n_mult = len(cfg["simulation"]["multipliers"])
     n_null = sum(cfg["simulation"]["scenes"][s]["n_shards"] for s in cfg["null_tests"]["scenes"])
     assert n_null == 2  # the null scenes of config.yaml, one shard each
-    assert stats["simulate_shard"] == 5000 + 1 + 10 + n_null
-    n_cdm = len(cfgmod.cdm_scenes(cfg))  # both grids: nfw, tnfw, nfw_ref, tnfw_ref
-    assert n_cdm == 4
-    assert stats["simulate_cdm_shard"] == stats["evaluate_cdm_profiles"] == n_cdm * n_mult * 10
-    assert stats["evaluate_profiles"] == 1 + 10 + n_null
+    cdm = cfg["cdm"]
+    controls = [*cdm["field_controls"], *cdm["reference_controls"]]
+    n_controls = sum(cfg["simulation"]["scenes"][s]["n_shards"] for s in controls)
+    assert n_controls == 80  # 8 matched controls of 10 shards each
+    assert stats["simulate_shard"] == 5000 + 1 + 10 + n_null + n_controls
+    # both grids (nfw, tnfw, nfw_ref, tnfw_ref) at every multiplier, nfw_ref_centroid at
+    # two, the 8 further scenes of the abundance series at a = 1
+    n_cdm = len(cfgmod.cdm_grids(cfg)) * 2 * n_mult * 10 + 2 * 10 + 8 * 10
+    assert stats["simulate_cdm_shard"] == stats["evaluate_cdm_profiles"] == n_cdm
+    assert stats["evaluate_profiles"] == 1 + 10 + n_null + n_controls
     assert stats["calibrate_threshold"] == 6
     for rule in (
         "train_estimator",
@@ -167,7 +172,8 @@ def test_tiny_groups_through_the_slurm_profile(workdir, data_dir):
     proc = subprocess.run([str(SNAKEMAKE), *argv], cwd=workdir, env=env, capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    # the 10 shard jobs of tiny.yaml in one cluster job; its 8 profile jobs and 4
-    # subhalo-free profile jobs in cluster jobs of at most 10 (group-components)
-    assert sorted(_group_jobs(proc.stdout)) == [("evaluate", 2), ("evaluate", 10), ("simulate", 10)]
+    # the 14 shard jobs of tiny.yaml (4 of them matched controls) in one cluster job; its
+    # 12 profile jobs and 4 subhalo-free profile jobs in cluster jobs of at most 10
+    # (group-components)
+    assert sorted(_group_jobs(proc.stdout)) == [("evaluate", 6), ("evaluate", 10), ("simulate", 14)]
     assert _group_components() == {"simulate": 20, "evaluate": 10}

@@ -266,9 +266,10 @@ def cdm_grids(config: Mapping[str, Any]) -> dict[str, tuple[str, str | None]]:
 
 
 def cdm_scenes(config: Mapping[str, Any]) -> list[str]:
-    """Every CDM scene of :func:`cdm_grids`, in grid order, without repeats."""
+    """Every CDM scene of :func:`cdm_grids`, in grid order, then ``cdm.extra_scenes``,
+    without repeats."""
     names = [s for pair in cdm_grids(config).values() for s in pair if s]
-    return list(dict.fromkeys(names))
+    return list(dict.fromkeys(names + list(config["cdm"].get("extra_scenes") or ())))
 
 
 def active_stages(config: Mapping[str, Any]) -> dict[str, bool]:
@@ -397,6 +398,8 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
                     )
                 elif need_scene(key, name):
                     problems += _control_problems(config, key, name, grids[grid][0])
+        for k, name in enumerate(cdm["extra_scenes"]):
+            need_scene(f"cdm.extra_scenes[{k}]", name)
         for k, name in enumerate(cdm["abundance"]):
             if need_scene(f"cdm.abundance[{k}]", name):
                 problems += _abundance_problems(config, f"cdm.abundance[{k}]", name)

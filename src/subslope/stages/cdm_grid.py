@@ -212,9 +212,10 @@ def measure_cdm_grid(
 
     mults = sorted({float(a) for _, a in files})
     ref_nfw, ref_tnfw = tuple(reference_scenes) if reference_scenes else (None, None)
+    others = sorted({k[0] for k in files} - {nfw_scene, tnfw_scene, ref_nfw, ref_tnfw})
     scenes = [
         s
-        for s in dict.fromkeys((nfw_scene, tnfw_scene, ref_nfw, ref_tnfw))
+        for s in dict.fromkeys((nfw_scene, tnfw_scene, ref_nfw, ref_tnfw, *others))
         if s is not None and any(k[0] == s for k in files)
     ]
     rows, arrays = [], {"multipliers": np.asarray(mults)}
