@@ -179,7 +179,7 @@ def tiny_run(tmp_path_factory):
         if not record.exists():
             root.mkdir()
             proc = run_snakemake(
-                workflow_copy(root), "--cores", "2", *TINY, mirror=data_dir, timeout=900
+                workflow_copy(root), "--cores", "2", *TINY, mirror=data_dir, timeout=1800
             )
             outcome = {"returncode": proc.returncode, "output": proc.stdout + proc.stderr}
             record.write_text(json.dumps(outcome))

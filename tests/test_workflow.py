@@ -41,20 +41,30 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
     sim = cfg["simulation"]["scenes"]
     n_mult = len(cfg["simulation"]["multipliers"])
     null = cfg["null_tests"]["scenes"]
+    cdm = cfg["cdm"]
+    controls = [*cdm["field_controls"], *cdm["reference_controls"]]
+    grids = ("nfw", "tnfw", "nfw_ref", "tnfw_ref")
+    extra = cdm["extra_scenes"] + [s for s in cdm["abundance"] if s not in grids]
+    per_mult = {
+        s: len(sim[s].get("multipliers") or cfg["simulation"]["multipliers"]) for s in extra
+    }
     assert stats["simulate_shard"] == sum(
-        sim[s]["n_shards"] for s in ("train", "validation", "test_epl", *null)
+        sim[s]["n_shards"] for s in ("train", "validation", "test_epl", *null, *controls)
     )
-    assert stats["simulate_cdm_shard"] == n_mult * (
-        sim["nfw"]["n_shards"] + sim["tnfw"]["n_shards"]
-    )
+    n_grid = n_mult * sum(sim[s]["n_shards"] for s in grids)
+    n_extra = sum(per_mult[s] * sim[s]["n_shards"] for s in extra)
+    assert stats["simulate_cdm_shard"] == n_grid + n_extra
     assert stats["evaluate_profiles"] == sum(
-        sim[s]["n_shards"] for s in ("validation", "test_epl", *null)
+        sim[s]["n_shards"] for s in ("validation", "test_epl", *null, *controls)
     )
     assert stats["evaluate_cdm_profiles"] == stats["simulate_cdm_shard"]
-    assert stats["subhalo_free_profiles"] == stats["simulate_cdm_shard"]  # every multiplier
+    # every multiplier of the grids and the extra scenes (not the abundance series)
+    n_free = n_grid + sum(per_mult[s] * sim[s]["n_shards"] for s in cdm["extra_scenes"])
+    assert stats["subhalo_free_profiles"] == n_free
     assert stats["calibrate_threshold"] == len(cfg["calibration"]["n_images"]) == 6
-    assert stats["signal_budget"] == 2 + len(null)  # shard 0 of train, test_epl, the nulls
-    assert stats["signal_budget_cdm"] == 2 * n_mult
+    # shard 0 of train, test_epl, the nulls and the controls
+    assert stats["signal_budget"] == 2 + len(null) + len(controls)
+    assert stats["signal_budget_cdm"] == 4 * n_mult + sum(per_mult.values())
     assert stats["fetch_data"] == 21  # one job per registered data file
     for rule in (
         "plot_hst_gallery",
@@ -73,7 +83,9 @@ def test_dry_run_reduced_campaign_job_counts(workdir, data_dir):
         "all",
     ):
         assert stats[rule] == 1, (rule, stats)
-    assert stats["plot_scene_examples"] == 7
+    for rule in ("measure_epl_control", "measure_abundance", "concentration_contrast"):
+        assert stats[rule] == 1, (rule, stats)
+    assert stats["plot_scene_examples"] == len(sim)
     assert "results/evaluate_profiles/nfw/a0.5/shard_0.h5" in proc.stdout
     assert "results/calibrate_threshold/N13.npz" in proc.stdout
     assert "results/checkpoints" not in proc.stdout  # never a declared output
@@ -200,12 +212,17 @@ def test_dry_run_simulation_jobs_per_scene(workdir, data_dir):
     sim = cfgmod.load(workdir / "config" / "config.yaml", env=False)["simulation"]
     n_mult = len(sim["multipliers"])
     # one job per shard of the EPL scenes; per shard and multiplier of the CDM scenes
-    epl = ("train", "validation", "test_epl", "null_nosub", "null_nosub_los")
+    # (the scene's own multipliers where it lists them)
+    cdm = {s for s in sim["scenes"] if s in ("nfw", "tnfw") or "nfw_ref" in s}
+    epl = set(sim["scenes"]) - cdm
     assert stats["simulate_shard"] == sum(sim["scenes"][s]["n_shards"] for s in epl)
-    assert stats["simulate_cdm_shard"] == n_mult * (
-        sim["scenes"]["nfw"]["n_shards"] + sim["scenes"]["tnfw"]["n_shards"]
+    assert stats["simulate_cdm_shard"] == sum(
+        len(sim["scenes"][s].get("multipliers") or sim["multipliers"])
+        * sim["scenes"][s]["n_shards"]
+        for s in cdm
     )
-    assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == 7, stats
+    assert n_mult == 5
+    assert stats["compute_whitening"] == 1 and stats["plot_scene_examples"] == len(sim["scenes"])
     assert "train_estimator" not in stats and "evaluate_profiles" not in stats
     last_train = sim["scenes"]["train"]["n_shards"] - 1
     for path in (
@@ -226,7 +243,7 @@ STAGE_RULES = {
     "train": {"train_estimator"},
     "evaluate": {"evaluate_profiles", "evaluate_cdm_profiles"},
     "calibrate": {"calibrate_threshold", "summarize_coverage"},
-    "cdm_grid": {"effective_slope", "measure_cdm_grid"},
+    "cdm_grid": {"effective_slope", "measure_cdm_grid", "measure_epl_control", "measure_abundance"},
     "null_tests": {
         "null_tests",
         "halo_free_profiles",
@@ -236,7 +253,12 @@ STAGE_RULES = {
     },
     "hst": {"analyze_hst"},
     "figures": {"plot_training_curves", "plot_validation"},
-    "signal_budget": {"signal_budget", "signal_budget_cdm", "summarize_signal_budget"},
+    "signal_budget": {
+        "signal_budget",
+        "signal_budget_cdm",
+        "summarize_signal_budget",
+        "concentration_contrast",
+    },
     "summary": {"write_summary"},
 }
 
@@ -246,29 +268,31 @@ def test_dry_run_tiny_job_counts(workdir, data_dir):
     assert proc.returncode == 0, proc.stderr
     stats = _job_stats(proc.stdout)
     expected = {
-        "simulate_shard": 6,
-        "simulate_cdm_shard": 2,
+        "simulate_shard": 10,  # train 2, validation, test_epl, 2 null, 4 matched controls
+        "simulate_cdm_shard": 4,  # nfw, tnfw, nfw_ref, tnfw_ref at a = 1
         "compute_whitening": 1,
-        "plot_scene_examples": 7,
+        "plot_scene_examples": 13,
         "fit_lens_light": 1,
         "check_domain": 1,
         "train_estimator": 1,
         "plot_training_curves": 1,
-        "evaluate_profiles": 4,
-        "evaluate_cdm_profiles": 2,
+        "evaluate_profiles": 8,
+        "evaluate_cdm_profiles": 4,
         "calibrate_threshold": 2,
         "summarize_coverage": 1,
         "effective_slope": 1,
+        "measure_epl_control": 1,
+        "measure_abundance": 1,
         "measure_cdm_grid": 1,
         "null_tests": 1,
         "halo_free_profiles": 1,
         "halo_free_null": 1,
-        "subhalo_free_profiles": 2,
+        "subhalo_free_profiles": 4,
         "cdm_visibility": 1,
         "analyze_hst": 1,
         "plot_validation": 1,
-        "signal_budget": 4,  # shard 0 of train, test_epl and the two null scenes
-        "signal_budget_cdm": 2,  # shard 0 of nfw and tnfw at each multiplier
+        "signal_budget": 8,  # shard 0 of train, test_epl, the two null scenes, the controls
+        "signal_budget_cdm": 4,  # shard 0 of every CDM scene at each multiplier
         "summarize_signal_budget": 1,
         "write_summary": 1,
         "all": 1,
@@ -571,13 +595,13 @@ def test_real_run_tiny_reruns(tiny_run, campaign, data_dir):
     proc = snakemake(campaign, "-n", "--configfile", str(more), mirror=data_dir)
     assert proc.returncode == 0, proc.stderr
     assert _job_stats(proc.stdout) == {
-        "simulate_cdm_shard": 2,
-        "evaluate_cdm_profiles": 2,
+        "simulate_cdm_shard": 4,  # both grids' NFW and tNFW scenes
+        "evaluate_cdm_profiles": 4,
         "effective_slope": 1,  # one cheap job over every CDM shard
         "measure_cdm_grid": 1,
-        "subhalo_free_profiles": 2,  # the new multiplier's sets without their subhalos
+        "subhalo_free_profiles": 4,  # the new multiplier's sets without their subhalos
         "cdm_visibility": 1,
-        "signal_budget_cdm": 2,
+        "signal_budget_cdm": 4,
         "summarize_signal_budget": 1,
         "analyze_hst": 1,
         "write_summary": 1,
