@@ -172,3 +172,47 @@ def test_one_command_trains_a_seed_on_the_campaigns_shards(tiny_run, tmp_path):
     assert logs and all("taken from the cache" in p.read_text() for p in logs)
     assert not (seed_results / "signal_budget").exists()
     assert not (seed_results / "check_domain").exists()
+
+
+def test_a_comparison_that_could_not_be_made_is_not_checked(tmp_path):
+    """Five lenses against null scenes stacked 13 deep only: no comparison, so the
+    sentence says "not checked", never "outside the subhalo-free range"."""
+    hst = tmp_path / "hst.csv"
+    row = {
+        "n_images": 5,
+        "gamma_mle": 1.73,
+        "lower": 1.47,
+        "upper": 2.04,
+        "lower_at_edge": False,
+        "upper_at_edge": False,
+    }
+    pd.DataFrame([row]).to_csv(hst, index=False)
+    null = tmp_path / "null.csv"
+    pd.DataFrame(
+        [{"scene": "null_nosub", "n_per_stack": 13, "stack_mle_p16": 1.63, "stack_mle_p84": 1.84}]
+    ).to_csv(null, index=False)
+    text = "".join(meaning_lines(hst, null))
+    assert "not checked" in text and "no subhalo-free null scene is stacked 5 deep" in text
+    assert "outside" not in text and "it is a measurement" not in text
+
+
+def test_the_dense_subhalo_lens_is_named_only_when_it_is_in_the_set(tmp_path):
+    from subslope.stages.summary_hst import leave_one_out_lines
+
+    loo = tmp_path / "loo.csv"
+    rows = [
+        {
+            "left_out": f"MINE{k}",
+            "mle": 1.7,
+            "lower": 1.4,
+            "upper": 2.0,
+            "shift": 0.01 * k,
+            "n_images": 4,
+        }
+        for k in range(1, 6)
+    ]
+    pd.DataFrame(rows).to_csv(loo, index=False)
+    assert "SDSSJ0946+1006" not in "".join(leave_one_out_lines(loo))
+    rows[0]["left_out"] = "SDSSJ0946+1006"
+    pd.DataFrame(rows).to_csv(loo, index=False)
+    assert "published dense subhalo" in "".join(leave_one_out_lines(loo))

@@ -111,9 +111,9 @@ def _cdm(results: Path) -> list[str]:
         )
         out.append(
             f"The CDM subhalos move the estimator's stack γ_MLE (paired shift against the "
-            f"same sets without them, Wilcoxon p < 0.05): {moved}. Compare each shift with "
-            "the signal the images hold (results/response.csv): a shift that does not grow "
-            "with the signal is the estimator's limit, not the data's."
+            f"same sets without them, Wilcoxon p < 0.05): {moved}. The signal these sets "
+            "hold (results/response.csv) bounds detection, not what the images can say "
+            "about the concentration."
         )
     return out
 

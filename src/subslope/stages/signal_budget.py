@@ -350,7 +350,8 @@ def response_table(signal_csv, visibility_csv=None, halo_free_csv=None):
     without their subhalos and its standard error (``cdm_visibility.csv``). EPL test sets:
     the median stack γ_MLE of the originals minus that of the same sets without subhalos
     and line-of-sight halos (``halo_free.csv``, sheets removed; not paired, no error).
-    Where the signal is large and the shift is not, the estimator is the limit."""
+    The Δχ² bounds the detection of subhalos of known positions and masses; it says
+    nothing by itself about what the images can tell of their concentration."""
     import pandas as pd
 
     signal = pd.read_csv(signal_csv)

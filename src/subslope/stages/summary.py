@@ -356,8 +356,9 @@ def _response_lines(folder: Path, signal_csv, visibility_csv, halo_free_csv, run
         "\nThe estimator's response against that signal (`shift`: how far removing the "
         "halos moves the stack γ_MLE; CDM sets paired with their subhalo-free re-renders, "
         "EPL test sets as the difference of medians against their halo-free re-renders; "
-        "figures/response.png). Where the ideal observer's Δχ² is large and the shift is "
-        "zero, the estimator, not the data, is the limit:\n",
+        "figures/response.png). The Δχ² bounds whether subhalos of known positions and "
+        "masses could be detected, not what the images can say about their "
+        "concentration once positions, masses and counts are unknown:\n",
         md_table(table.to_dict("records"), list(RESPONSE_COLUMNS)),
     ]
 

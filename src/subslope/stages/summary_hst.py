@@ -93,6 +93,10 @@ def hst_section(folder: Path, hst_csv, null_csv=None) -> list[str]:
     ]
 
 
+#: The lens of the shipped set with a published dense subhalo (Vegetti et al. 2010).
+DENSE_SUBHALO_LENS = "SDSSJ0946+1006"
+
+
 def _null_ranges(null_csv, n_images: int) -> list[tuple[str, float, float]]:
     """(scene, 16%, 84%) of the stack γ_MLE of every subhalo-free null scene stacked
     ``n_images`` deep."""
@@ -133,11 +137,16 @@ def leave_one_out_lines(loo_csv) -> list[str]:
     if not len(table):
         return []
     top = table.loc[table["shift"].abs().idxmax()]
+    dense = (
+        "; SDSSJ0946+1006 is the one lens with a published dense subhalo"
+        if DENSE_SUBHALO_LENS in set(table["left_out"])
+        else ""
+    )
     return [
         "\nThe combined stack with each lens left out (`shift`: its γ_MLE minus that of "
         f"all lenses; threshold of {int(table['n_images'].iloc[0])}-image stacks). The "
-        f"largest shift comes from leaving out {top['left_out']} ({top['shift']:+.3f}); "
-        "SDSSJ0946+1006 is the one lens with a published dense subhalo:\n",
+        f"largest shift comes from leaving out {top['left_out']} ({top['shift']:+.3f})"
+        f"{dense}:\n",
         md_table(table.to_dict("records"), ["left_out", "mle", "lower", "upper", "shift"]),
     ]
 
@@ -209,10 +218,9 @@ def meaning_lines(hst_result_csv, null_csv=None, seeds_csv=None) -> list[str]:
     row = table.iloc[0]
     mle, lo, hi = float(row["gamma_mle"]), float(row["lower"]), float(row["upper"])
     reasons = []
+    ranges = _null_ranges(null_csv, int(row["n_images"]))
     inside = [
-        f"{scene} [{lo16:.2f}, {hi84:.2f}]"
-        for scene, lo16, hi84 in _null_ranges(null_csv, int(row["n_images"]))
-        if lo16 <= mle <= hi84
+        f"{scene} [{lo16:.2f}, {hi84:.2f}]" for scene, lo16, hi84 in ranges if lo16 <= mle <= hi84
     ]
     if inside:
         reasons.append(
@@ -231,6 +239,13 @@ def meaning_lines(hst_result_csv, null_csv=None, seeds_csv=None) -> list[str]:
         text = (
             f"What the number means: γ_MLE = {mle:.2f} is not a measurement of the subhalos' "
             f"slope, because {'; '.join(reasons)}."
+        )
+    elif not ranges:
+        text = (
+            f"What the number means: not checked. The {int(row['n_images'])} lenses read "
+            f"γ = {mle:.2f} [{lo:.2f}, {hi:.2f}] (68%), but no subhalo-free null scene is "
+            f"stacked {int(row['n_images'])} deep (null_tests.csv), so whether the reading "
+            "differs from that of images without subhalos is not known."
         )
     else:
         spread = f", stable to {max(g) - min(g):.2f} over {len(g)} trainings" if g else ""
