@@ -212,7 +212,10 @@ def test_the_dense_subhalo_lens_is_named_only_when_it_is_in_the_set(tmp_path):
         for k in range(1, 6)
     ]
     pd.DataFrame(rows).to_csv(loo, index=False)
-    assert "SDSSJ0946+1006" not in "".join(leave_one_out_lines(loo))
+    assert "SDSSJ0946+1006" not in "".join(leave_one_out_lines(loo, ["SDSSJ0946+1006"]))
     rows[0]["left_out"] = "SDSSJ0946+1006"
     pd.DataFrame(rows).to_csv(loo, index=False)
-    assert "published dense subhalo" in "".join(leave_one_out_lines(loo))
+    text = "".join(leave_one_out_lines(loo, ["SDSSJ0946+1006"]))
+    assert "highlighted in the config (hst.highlight): SDSSJ0946+1006" in text
+    assert "SDSSJ0946+1006 (" not in "".join(leave_one_out_lines(loo))  # only as a row
+    assert "highlighted" not in "".join(leave_one_out_lines(loo))

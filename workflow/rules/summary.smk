@@ -23,5 +23,6 @@ rule write_summary:
         benchmarks=benchmark_files(),
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
+        highlight=config["hst"]["highlight"],
     script:
         "../scripts/write_summary.py"

@@ -33,6 +33,7 @@ try:
         benchmarks=snakemake.params.benchmarks,
         nfw_scene=snakemake.params.nfw_scene,
         tnfw_scene=snakemake.params.tnfw_scene,
+        highlight=snakemake.params.highlight,
     )
     record = write_run_record(
         snakemake.output.run,

@@ -428,6 +428,7 @@ def write_summary(
     benchmarks: Mapping[str, Sequence] | None = None,
     nfw_scene: str = "nfw",
     tnfw_scene: str | None = "tnfw",
+    highlight: Sequence[str] = (),
 ) -> Path:
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
     ``coverage.csv``, ``null_tests.csv``, ``halo_free.csv``, ``nsub_bias.csv``,
@@ -445,7 +446,7 @@ def write_summary(
         ["\n".join(items) + "\n"],
         _domain_section(domain_csv),
         hst_section(folder, hst_csv, null_csv)
-        + leave_one_out_lines(loo_csv)
+        + leave_one_out_lines(loo_csv, highlight)
         + seeds_lines(seeds_csv)
         + meaning_lines(folder / "hst_result.csv", null_csv, seeds_csv)
         + reach_lines(folder / "hst_result.csv", signal_csv, (nfw_scene, tnfw_scene)),
