@@ -114,7 +114,9 @@ def _lnr(mu, s):
 def test_hst_profiles_and_combined(tmp_path):
     names = ["SDSSJ0946+1006", "SDSSJ0029-0055", "SDSSJ0737+3216", "SDSSJ1627-0053"]
     lnr = {n: _lnr(2.2 + 0.1 * k, 0.3 + 0.05 * k) for k, n in enumerate(names)}
-    fig5 = figures.hst_profiles(G, lnr, 1.05, run_name=RUN, kind="log_ratio", wilks=0.989)
+    fig5 = figures.hst_profiles(
+        G, lnr, 1.05, run_name=RUN, kind="log_ratio", wilks=0.989, highlight=["SDSSJ0946+1006"]
+    )
     (ax,) = fig5.axes
     assert len(ax.lines) == len(names) + 2  # curves + τ₁ + Wilks
     assert max(line.get_linewidth() for line in ax.lines) == 2.4  # SDSSJ0946+1006 highlighted

@@ -63,33 +63,13 @@ def test_a_seed_that_cannot_run_is_refused_before_any(tmp_path, change, seeds, m
 
 
 ROWS = [
-    {
-        "training": "a",
-        "seed": "derived",
-        "hst_gamma_mle": 1.4,
-        "hst_lower": 1.1,
-        "hst_upper": 1.7,
-        "hst_open": "lower",
-        "nfw_median": 1.5,
-        "tnfw_median": 1.3,
-        "spearman_rho": 0.9,
-        "n_max": 13,
-        "coverage_nmax": 0.7,
-    },
-    {
-        "training": "b",
-        "seed": 1,
-        "hst_gamma_mle": 1.8,
-        "hst_lower": 1.5,
-        "hst_upper": 2.1,
-        "hst_open": "no",
-        "nfw_median": 1.6,
-        "tnfw_median": 1.4,
-        "spearman_rho": 0.85,
-        "n_max": 13,
-        "coverage_nmax": 0.69,
-    },
-]
+    {"training": "a", "seed": "derived", "hst_gamma_mle": 1.4, "hst_lower": 1.1,
+     "hst_upper": 1.7, "hst_open": "lower", "nfw_median": 1.5, "tnfw_median": 1.3,
+     "spearman_rho": 0.9, "n_max": 13, "coverage_nmax": 0.7},
+    {"training": "b", "seed": 1, "hst_gamma_mle": 1.8, "hst_lower": 1.5,
+     "hst_upper": 2.1, "hst_open": "no", "nfw_median": 1.6, "tnfw_median": 1.4,
+     "spearman_rho": 0.85, "n_max": 13, "coverage_nmax": 0.69},
+]  # fmt: skip
 
 
 def test_the_spread_sentence_counts_open_intervals():
@@ -99,14 +79,8 @@ def test_the_spread_sentence_counts_open_intervals():
 
 
 def _hst_result(path, mle, lower, upper, lower_at_edge=False, upper_at_edge=False):
-    row = {
-        "n_images": 13,
-        "gamma_mle": mle,
-        "lower": lower,
-        "upper": upper,
-        "lower_at_edge": lower_at_edge,
-        "upper_at_edge": upper_at_edge,
-    }
+    row = {"n_images": 13, "gamma_mle": mle, "lower": lower, "upper": upper,
+           "lower_at_edge": lower_at_edge, "upper_at_edge": upper_at_edge}  # fmt: skip
     pd.DataFrame([row]).to_csv(path, index=False)
     return path
 
@@ -169,12 +143,8 @@ def test_what_the_lenses_could_show_scales_the_signal_budget_to_the_stack(tmp_pa
 def test_the_workflow_reads_the_table_where_the_command_writes_it():
     common = (REPO_ROOT / "workflow" / "rules" / "common.smk").read_text()
     assert f'SEEDS_CSV = "{SEEDS_CSV}"' in common
-    command = summary_command(
-        ["config/a.yaml", "b.yaml"],
-        snakefile="Snakefile",
-        cores=3,
-        extra=["--rerun-triggers", "mtime"],
-    )
+    command = summary_command(["config/a.yaml", "b.yaml"], snakefile="Snakefile", cores=3,
+                              extra=["--rerun-triggers", "mtime"])  # fmt: skip
     assert command[-3:] == ["results/summary.md", "--rerun-triggers", "mtime"]
     assert command[3:8] == ["--configfile", "config/a.yaml", "--configfile", "b.yaml", "--cores"]
 
@@ -182,18 +152,8 @@ def test_the_workflow_reads_the_table_where_the_command_writes_it():
 def test_one_command_trains_a_seed_on_the_campaigns_shards(tiny_run, tmp_path):
     root = tiny_run.parent
     exe = Path(sys.executable).with_name("subslope")
-    command = [
-        str(exe),
-        "seeds",
-        "--config",
-        "config/tiny.yaml",
-        "--seeds",
-        "3",
-        "--folder",
-        str(tmp_path),
-        "--cores",
-        "2",
-    ]
+    command = [str(exe), "seeds", "--config", "config/tiny.yaml", "--seeds", "3",
+               "--folder", str(tmp_path), "--cores", "2"]  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS="1", SUBSLOPE_DATA_MIRROR=str(shared_data_dir()))
     proc = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-5000:]
@@ -252,7 +212,10 @@ def test_the_dense_subhalo_lens_is_named_only_when_it_is_in_the_set(tmp_path):
         for k in range(1, 6)
     ]
     pd.DataFrame(rows).to_csv(loo, index=False)
-    assert "SDSSJ0946+1006" not in "".join(leave_one_out_lines(loo))
+    assert "SDSSJ0946+1006" not in "".join(leave_one_out_lines(loo, ["SDSSJ0946+1006"]))
     rows[0]["left_out"] = "SDSSJ0946+1006"
     pd.DataFrame(rows).to_csv(loo, index=False)
-    assert "published dense subhalo" in "".join(leave_one_out_lines(loo))
+    text = "".join(leave_one_out_lines(loo, ["SDSSJ0946+1006"]))
+    assert "highlighted in the config (hst.highlight): SDSSJ0946+1006" in text
+    assert "SDSSJ0946+1006 (" not in "".join(leave_one_out_lines(loo))  # only as a row
+    assert "highlighted" not in "".join(leave_one_out_lines(loo))

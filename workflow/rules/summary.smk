@@ -24,5 +24,6 @@ rule write_summary:
         nfw_scene=CDM["nfw_scene"],
         tnfw_scene=CDM["tnfw_scene"],
         reference_scenes=subslope.config.cdm_grids(config).get("reference"),
+        highlight=config["hst"]["highlight"],
     script:
         "../scripts/write_summary.py"

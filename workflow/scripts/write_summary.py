@@ -38,6 +38,7 @@ try:
         contrast_csv=inputs.get("contrast"),
         abundance_csv=inputs.get("abundance"),
         classifier_json=list(inputs.get("classifier") or []),
+        highlight=snakemake.params.highlight,
     )
     record = write_run_record(
         snakemake.output.run,

@@ -225,7 +225,7 @@ def hst_profiles(
     source: str | None = None,
     kind: str = "t",
     wilks: float | None = None,
-    highlight: Sequence[str] = ("SDSSJ0946+1006",),
+    highlight: Sequence[str] = (),
     ymax: float | None = None,
 ) -> Figure:
     """Fig. 5: test-statistic profiles t(γ) of individual HST systems.

@@ -40,7 +40,7 @@ def analyze_hst(
     cdm_csv=None,
     combine: Sequence[str] | None = None,
     show: Sequence[str] = (),
-    highlight: Sequence[str] = ("SDSSJ0946+1006",),
+    highlight: Sequence[str] = (),
     lens_centre: Mapping[str, Any] | None = None,
     pixel_scale: float = PIXEL_SCALE,
     batch_size: int = 16,

@@ -606,6 +606,7 @@ def write_summary(
     contrast_csv=None,
     abundance_csv=None,
     classifier_json: Sequence | None = None,
+    highlight: Sequence[str] = (),
 ) -> Path:
     """``summary.md`` and, beside it, ``hst_result.csv``, ``cdm_prediction.csv``,
     ``coverage.csv``, ``null_tests.csv``, ``halo_free.csv``, ``nsub_bias.csv``,
@@ -623,7 +624,7 @@ def write_summary(
         ["\n".join(items) + "\n"],
         _domain_section(domain_csv),
         hst_section(folder, hst_csv, null_csv)
-        + leave_one_out_lines(loo_csv)
+        + leave_one_out_lines(loo_csv, highlight)
         + seeds_lines(seeds_csv)
         + meaning_lines(folder / "hst_result.csv", null_csv, seeds_csv)
         + reach_lines(folder / "hst_result.csv", signal_csv, (nfw_scene, tnfw_scene)),

@@ -93,10 +93,6 @@ def hst_section(folder: Path, hst_csv, null_csv=None) -> list[str]:
     ]
 
 
-#: The lens of the shipped set with a published dense subhalo (Vegetti et al. 2010).
-DENSE_SUBHALO_LENS = "SDSSJ0946+1006"
-
-
 def _null_ranges(null_csv, n_images: int) -> list[tuple[str, float, float]]:
     """(scene, 16%, 84%) of the stack γ_MLE of every subhalo-free null scene stacked
     ``n_images`` deep."""
@@ -127,8 +123,10 @@ def against_null_stacks(mle: float, n_images: int, null_csv) -> list[str]:
     ]
 
 
-def leave_one_out_lines(loo_csv) -> list[str]:
-    """The combined γ_MLE with each HST lens left out (results/analyze_hst/leave_one_out.csv)."""
+def leave_one_out_lines(loo_csv, highlight: Sequence[str] = ()) -> list[str]:
+    """The combined γ_MLE with each HST lens left out (results/analyze_hst/leave_one_out.csv);
+    ``highlight`` (``hst.highlight``): lenses the config singles out, named where the set
+    holds them."""
     import pandas as pd
 
     if not loo_csv:
@@ -137,16 +135,13 @@ def leave_one_out_lines(loo_csv) -> list[str]:
     if not len(table):
         return []
     top = table.loc[table["shift"].abs().idxmax()]
-    dense = (
-        "; SDSSJ0946+1006 is the one lens with a published dense subhalo"
-        if DENSE_SUBHALO_LENS in set(table["left_out"])
-        else ""
-    )
+    shown = [name for name in highlight if name in set(table["left_out"])]
+    named = f"; highlighted in the config (hst.highlight): {', '.join(shown)}" if shown else ""
     return [
         "\nThe combined stack with each lens left out (`shift`: its γ_MLE minus that of "
         f"all lenses; threshold of {int(table['n_images'].iloc[0])}-image stacks). The "
         f"largest shift comes from leaving out {top['left_out']} ({top['shift']:+.3f})"
-        f"{dense}:\n",
+        f"{named}:\n",
         md_table(table.to_dict("records"), ["left_out", "mle", "lower", "upper", "shift"]),
     ]
 
