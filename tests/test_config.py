@@ -12,6 +12,7 @@ import yaml
 
 from subslope import config as cfg
 from subslope.cli import main as cli_main
+from subslope.simulation.presets import OPTIONAL_KEYS
 from subslope.simulation.scenes import PRESETS, scenes_from_config
 from tests.conftest import REPO_ROOT
 
@@ -44,6 +45,10 @@ SHIPPED_DEVIATIONS = {
     ("null_tests", "scenes"),
     ("cdm", "reference_nfw_scene"),
     ("cdm", "reference_tnfw_scene"),
+    ("cdm", "field_controls"),
+    ("cdm", "reference_controls"),
+    ("cdm", "extra_scenes"),
+    ("cdm", "abundance"),
     ("systematics", "variants"),
     ("systematics", "common"),
 }
@@ -63,7 +68,14 @@ SCENE_KEYS_WITHOUT_DEFAULT = {
     "subhalos.profile",
     "subhalos.placement",
     "los.profile",
+    # optional keys: absent means off, no preset holds them (simulation.presets.OPTIONAL_KEYS)
+    "common_draws",
+    "subhalos.fixed_gamma",
 }
+
+#: Keys outside the scenes whose absence means something, so they carry no default:
+#: a simulated scene's own multipliers (absent: simulation.multipliers).
+KEYS_WITHOUT_DEFAULT = ("simulation.scenes.<scene>.multipliers",)
 
 
 #: Where every scene of config/config.yaml departs from the paper's presets: the choices
@@ -89,6 +101,41 @@ REFERENCE_SUBHALOS = {
 }
 
 
+def shipped_scenes(scene_names) -> dict:
+    """What config/config.yaml declares for each scene, spelled from the presets and the
+    choices above: the realism choices everywhere, the test-set keys, the null scenes, the
+    reference code's CDM sets with its centroid variant and the abundance series, and
+    the matched EPL controls of both grids."""
+    out = {name: SHIPPED_SCENE_CHOICES for name in scene_names}
+    test_sets = {"images_per_set": 13, "source": {"split": "test"}, **SHIPPED_SCENE_CHOICES}
+    out.update({name: {**test_sets, **spec} for name, spec in NULL_SCENES.items()})
+
+    def reference(profile, **subhalos):
+        sub = {**REFERENCE_SUBHALOS, "profile": profile, **subhalos}
+        return {**test_sets, "subhalos": sub, "los": {"profile": "nfw"}}
+
+    out["nfw_ref"], out["tnfw_ref"] = reference("nfw"), reference("tnfw")
+    out["nfw_ref_centroid"] = reference("nfw", sheet_centre="mass_centroid")
+    for n_max in (400, 1800, 3000, 6000):
+        count = {"dist": "uniform_int", "low": 0, "high": n_max}
+        out[f"nfw_ref_n{n_max}"] = reference("nfw", count=count)
+        out[f"tnfw_ref_n{n_max}"] = reference("tnfw", count=count)
+    field = {"count": {"dist": "uniform_int", "low": 0, "high": 1800}, "placement": "everywhere"}
+    for gamma in (1.5, 1.8, 2.1, 2.4):
+        tag = f"{round(10 * gamma)}"
+        out[f"epl_control_{tag}"] = {
+            **test_sets,
+            "common_draws": True,
+            "subhalos": {**field, "fixed_gamma": gamma},
+            "los": {"profile": "nfw"},
+        }
+        out[f"epl_control_ref_{tag}"] = {
+            **reference("epl", fixed_gamma=gamma),
+            "common_draws": True,
+        }
+    return out
+
+
 def _without(config, paths):
     out = copy.deepcopy(config)
     for path in paths:
@@ -105,15 +152,7 @@ def test_shipped_config_is_valid_and_complete():
     # The shipped file spells out every key, so apart from the documented deviations
     # it equals the pure-defaults config; scenes compare as resolved Scene objects
     # (the file writes the train scene out in full, the defaults are the presets).
-    chosen = {name: SHIPPED_SCENE_CHOICES for name in defaults["scenes"] or PRESETS}
-    test_sets = {"images_per_set": 13, "source": {"split": "test"}, **SHIPPED_SCENE_CHOICES}
-    chosen.update({name: {**test_sets, **spec} for name, spec in NULL_SCENES.items()})
-    for name, profile in (("nfw_ref", "nfw"), ("tnfw_ref", "tnfw")):
-        chosen[name] = {
-            **test_sets,
-            "subhalos": {**REFERENCE_SUBHALOS, "profile": profile},
-            "los": {"profile": "nfw"},
-        }
+    chosen = shipped_scenes(defaults["scenes"] or PRESETS)
     assert scenes_from_config(loaded["scenes"]) == scenes_from_config(chosen)
     assert loaded["null_tests"]["scenes"] == list(NULL_SCENES)
     strip = SHIPPED_DEVIATIONS | {("scenes",)}
@@ -188,8 +227,14 @@ def test_every_schema_key_is_typed_described_defaulted():
             inner = None if scene_path is None else f"{scene_path}.{key}".lstrip(".")
             assert "description" in sub or key == "<any>", where
             if "default" not in sub and key != "<any>":
-                assert inner is not None, f"{where} has no default"
-                without_default.add(inner)
+                generic = re.sub(
+                    r"^simulation\.scenes\.[^.]+\.", "simulation.scenes.<scene>.", where
+                )
+                assert inner is not None or generic in KEYS_WITHOUT_DEFAULT, (
+                    f"{where} has no default"
+                )
+                if inner is not None:
+                    without_default.add(inner)
             if ref == "prior":
                 check_prior(where)
                 continue
@@ -213,6 +258,7 @@ def test_every_schema_key_is_typed_described_defaulted():
     walk(schema, "")
     assert {"scene", "prior", "shard_counts"} <= seen_refs | {"prior"}
     assert without_default == SCENE_KEYS_WITHOUT_DEFAULT
+    assert {".".join(k) for k in OPTIONAL_KEYS} <= SCENE_KEYS_WITHOUT_DEFAULT
 
 
 def test_workflow_schema_is_the_package_schema():

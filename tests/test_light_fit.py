@@ -139,7 +139,7 @@ def _hst_fits(data_dir, **kw):
 
 def test_hst_joint_preset_is_the_prior_of_the_pedestal_fits_and_they_are_plausible(data_dir):
     from subslope.physics.cosmology import arcsec_to_mpc
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.simulation.presets import LENS_LIGHT_PRIORS
     from subslope.stages.domain import JOINT_WIDEN
 
     obs, fit = _hst_fits(data_dir)

@@ -94,7 +94,7 @@ def test_fixed_gamma_needs_epl_subhalos_inside_the_bounds():
     sc = Scene.from_config("x", {"common_draws": True, "subhalos": {"fixed_gamma": 1.8}})
     assert sc.common_draws and sc.subhalos.fixed_gamma == 1.8
     # absent keys stay out of the scene's mapping (no existing shard's hash moves)
-    from subslope.simulation.scenes import merge_onto_preset
+    from subslope.simulation.presets import merge_onto_preset
 
     assert "common_draws" not in merge_onto_preset("train", {}, "scenes.train")
 
@@ -132,21 +132,29 @@ def test_control_slope_maps_a_reading_only_where_the_controls_rise():
 
 
 def test_control_and_abundance_keys_are_checked():
+    """Missing scenes are named when the config is validated, what needs the scenes
+    resolved when the run is planned; both name the key."""
+    from subslope.plan import plan_problems
+
     base = cfgmod.load(REPO_ROOT / "config" / "tiny.yaml", env=False)
 
     def problems(**cdm) -> str:
         bad = copy.deepcopy(base)
         bad["cdm"].update(cdm)
-        with pytest.raises(cfgmod.ConfigError) as err:
-            cfgmod.validate(bad)
-        return str(err.value)
+        try:
+            return "\n".join(plan_problems(bad))
+        except cfgmod.ConfigError as err:
+            return str(err)
 
     text = problems(field_controls=["test_epl"])
     assert "cdm.field_controls[0] = 'test_epl'" in text and "fixed_gamma" in text
     text = problems(abundance=["test_epl"])
     assert "cdm.abundance[0] = 'test_epl'" in text and "NFW or tNFW" in text
+    text = problems(abundance=["no_such_scene"])
+    assert "cdm.abundance[0] = 'no_such_scene': no shards of that scene" in text
     text = problems(reference_nfw_scene=None, reference_tnfw_scene=None)
     assert "reference grid is off" in text
+    assert problems() == ""
 
 
 # ----------------------------------------------------------------------------- abundance

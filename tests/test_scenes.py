@@ -248,15 +248,10 @@ def test_sersic_source_keys(rng):
 def test_config_fragment_matches_presets_and_schema():
     cfg = yaml.safe_load(FRAGMENT.read_text(encoding="utf-8"))
     from_fragment = scenes_from_config(cfg["scenes"])
-    from test_config import NULL_SCENES, REFERENCE_SUBHALOS
     from test_config import SHIPPED_SCENE_CHOICES as realism
+    from test_config import shipped_scenes
 
-    expected = {n: realism for n in PRESETS}
-    test_sets = {"images_per_set": 13, "source": {"split": "test"}, **realism}
-    expected.update({n: {**test_sets, **spec} for n, spec in NULL_SCENES.items()})
-    for name, profile in (("nfw_ref", "nfw"), ("tnfw_ref", "tnfw")):
-        subhalos = {**REFERENCE_SUBHALOS, "profile": profile}
-        expected[name] = {**test_sets, "subhalos": subhalos, "los": {"profile": "nfw"}}
+    expected = shipped_scenes(PRESETS)
     assert from_fragment == scenes_from_config(expected)
     frag = yaml.safe_load(SCHEMA_FRAGMENT.read_text(encoding="utf-8"))
     schema = {
@@ -282,7 +277,7 @@ def test_config_fragment_matches_presets_and_schema():
             elif "default" in entry and key not in realism.get(where, {}):
                 assert entry["default"] == values[key], f"{where}.{key}"
 
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.simulation.presets import LENS_LIGHT_PRIORS
 
     train["lens_light"] = LENS_LIGHT_PRIORS["table1"]  # the schema's defaults: Table 1
     for section, sub in frag["$defs"]["scene"]["properties"].items():
@@ -403,7 +398,7 @@ def test_schema_accepts_and_rejects_multi_sersic():
 
 
 def test_named_lens_light_priors():
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.simulation.presets import LENS_LIGHT_PRIORS
 
     table1 = Scene.from_config("train")
     fits = Scene.from_config("train", {"lens_light": {"prior": "hst_fits"}})
@@ -430,7 +425,7 @@ def test_named_lens_light_priors():
 
 
 def test_joint_lens_light_prior_draws_round_lenses_and_replaces_the_boxes(rng):
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.simulation.presets import LENS_LIGHT_PRIORS
 
     joint = Scene.from_config("train", {"lens_light": {"prior": "hst_joint"}})
     assert joint.lens_light.joint is not None
@@ -473,7 +468,7 @@ def test_sky_level_is_drawn_last_and_only_when_on():
     ],
 )
 def test_bad_joint_lens_light_names_the_key(joint, needle):
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.simulation.presets import LENS_LIGHT_PRIORS
 
     spec = {**LENS_LIGHT_PRIORS["hst_joint"]["joint"], **joint}
     with pytest.raises(ValueError, match=needle):  # SceneError or PriorError

@@ -167,6 +167,8 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
             resolved_scene(config, name)
     except (SceneError, PriorError) as exc:
         problems.append(str(exc))
+    else:
+        problems += _cdm_series_problems(config)
     src = config["simulation"]["sources"]
     split = src["split"]
     total = sum(float(split[k]) for k in ("train", "validation", "test"))
@@ -187,6 +189,79 @@ def plan_problems(config: Mapping[str, Any]) -> list[str]:
     problems += _psf_problems(config)
     problems += _observation_problems(config)
     problems += _hst_name_problems(config)
+    return problems
+
+
+def _cdm_series_problems(config: Mapping[str, Any]) -> list[str]:
+    """The matched EPL controls and the abundance series of a config whose CDM stage
+    runs, checked against their resolved scenes (scenes with shards only: the missing
+    ones are named by :func:`subslope.config.cross_key_problems`)."""
+    if not _config.active_stages(config)["cdm_grid"]:
+        return []
+    grids, with_shards = _config.cdm_grids(config), _config.shard_scenes(config)
+    problems: list[str] = []
+    for key, name, kind in _config.cdm_series(config):
+        if name not in with_shards:
+            continue
+        if kind in grids:
+            problems += _control_problems(config, key, name, grids[kind][0])
+        elif kind == "abundance":
+            problems += _abundance_problems(config, key, name)
+    return problems
+
+
+def _control_problems(config: Mapping[str, Any], key: str, name: str, nfw: str) -> list[str]:
+    """A matched EPL control ``name`` must carry EPL subhalos of one slope
+    (``subhalos.fixed_gamma``), draw the CDM sets (``common_draws``) and have shards of
+    the size of its grid's NFW scene ``nfw``, no more of them (each pairs with that
+    scene's shard of the same index)."""
+    sc, _ = resolved_scene(config, name)
+    problems = []
+    if sc.subhalos.fixed_gamma is None or not sc.common_draws:
+        problems.append(
+            f"config key {key} = {name!r}: a matched EPL control needs "
+            f"scenes.{name}.subhalos.fixed_gamma (EPL subhalos of one slope) and "
+            f"scenes.{name}.common_draws: true"
+        )
+    sim = config["simulation"]["scenes"]
+    if nfw in sim and (
+        sim[name]["images_per_shard"] != sim[nfw]["images_per_shard"]
+        or sim[name]["n_shards"] > sim[nfw]["n_shards"]
+    ):
+        problems.append(
+            f"config key {key} = {name!r}: simulation.scenes.{name} "
+            f"({sim[name]['n_shards']} x {sim[name]['images_per_shard']}) must have the "
+            f"images_per_shard of simulation.scenes.{nfw} "
+            f"({sim[nfw]['n_shards']} x {sim[nfw]['images_per_shard']}) and at most as "
+            "many shards: each control shard pairs with that scene's shard"
+        )
+    return problems
+
+
+def _abundance_problems(config: Mapping[str, Any], key: str, name: str) -> list[str]:
+    """A scene of the abundance series must be a CDM scene simulated at a = 1 with a
+    subhalo count prior U{0, N_max}, in shards of the field grid's NFW scene's size."""
+    sc, _ = resolved_scene(config, name)
+    mults = scene_multipliers(config, sc) or ()
+    count = sc.subhalos.count
+    problems = []
+    if sc.subhalos.profile == "epl" or 1.0 not in [float(a) for a in mults]:
+        problems.append(
+            f"config key {key} = {name!r}: the abundance series needs NFW or tNFW subhalos "
+            f"simulated at a = 1 (multipliers {list(mults)})"
+        )
+    if count.dist != "uniform_int" or count.support[0] != 0:
+        problems.append(
+            f"config key {key} = {name!r}: scenes.{name}.subhalos.count must be a "
+            "uniform_int prior from 0 (U{0, N_max})"
+        )
+    sim, nfw = config["simulation"]["scenes"], config["cdm"]["nfw_scene"]
+    if nfw in sim and sim[name]["images_per_shard"] != sim[nfw]["images_per_shard"]:
+        problems.append(
+            f"config key {key} = {name!r}: simulation.scenes.{name}.images_per_shard must "
+            f"equal simulation.scenes.{nfw}.images_per_shard: each shard pairs with that "
+            "scene's subhalo-free re-render"
+        )
     return problems
 
 

@@ -554,7 +554,7 @@ def abundance_groups():
 
 def control_groups():
     """[grid, scene, gamma, profiles files, subhalo-free profiles files] of every matched
-    EPL control (rule measure_epl_control): each control shard pairs with the a = 1
+    EPL control, read by rule measure_epl_control. Each control shard pairs with the a = 1
     subhalo-free re-render of its grid's NFW shard of the same index (none without the
     visibility check)."""
     groups = []

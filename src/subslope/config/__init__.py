@@ -28,6 +28,7 @@ import jsonschema
 import numpy as np
 import yaml
 
+from subslope.config.cdm import CDM_GRIDS, cdm_grids, cdm_scenes, cdm_series
 from subslope.config.messages import describe
 
 __all__ = [
@@ -45,8 +46,11 @@ __all__ = [
     "halo_free_sets",
     "halo_free_shards",
     "active_stages",
+    "CDM_GRIDS",
     "cdm_grids",
     "cdm_scenes",
+    "cdm_series",
+    "missing_scene",
     "STAGE_NEEDS",
     "BASE_KEY",
     "deep_merge",
@@ -190,88 +194,6 @@ STAGE_NEEDS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _control_problems(config: Mapping[str, Any], key: str, name: str, nfw: str) -> list[str]:
-    """A matched EPL control ``name`` must carry EPL subhalos of one slope
-    (``subhalos.fixed_gamma``), draw the CDM sets (``common_draws``) and have shards of
-    the size of its grid's NFW scene ``nfw``, no more of them (each pairs with that
-    scene's shard of the same index)."""
-    from subslope.simulation.resolve import resolved_scene
-
-    sc, _ = resolved_scene(config, name)
-    problems = []
-    if sc.subhalos.fixed_gamma is None or not sc.common_draws:
-        problems.append(
-            f"config key {key} = {name!r}: a matched EPL control needs "
-            f"scenes.{name}.subhalos.fixed_gamma (EPL subhalos of one slope) and "
-            f"scenes.{name}.common_draws: true"
-        )
-    sim = config["simulation"]["scenes"]
-    if nfw in sim and (
-        sim[name]["images_per_shard"] != sim[nfw]["images_per_shard"]
-        or sim[name]["n_shards"] > sim[nfw]["n_shards"]
-    ):
-        problems.append(
-            f"config key {key} = {name!r}: simulation.scenes.{name} "
-            f"({sim[name]['n_shards']} x {sim[name]['images_per_shard']}) must have the "
-            f"images_per_shard of simulation.scenes.{nfw} "
-            f"({sim[nfw]['n_shards']} x {sim[nfw]['images_per_shard']}) and at most as "
-            "many shards: each control shard pairs with that scene's shard"
-        )
-    return problems
-
-
-def _abundance_problems(config: Mapping[str, Any], key: str, name: str) -> list[str]:
-    """A scene of the abundance series must be a CDM scene simulated at a = 1 with a
-    subhalo count prior U{0, N_max}, in shards of the field grid's NFW scene's size."""
-    from subslope.simulation.resolve import resolved_scene, scene_multipliers
-
-    sc, _ = resolved_scene(config, name)
-    mults = scene_multipliers(config, sc) or ()
-    count = sc.subhalos.count
-    problems = []
-    if sc.subhalos.profile == "epl" or 1.0 not in [float(a) for a in mults]:
-        problems.append(
-            f"config key {key} = {name!r}: the abundance series needs NFW or tNFW subhalos "
-            f"simulated at a = 1 (multipliers {list(mults)})"
-        )
-    if count.dist != "uniform_int" or count.support[0] != 0:
-        problems.append(
-            f"config key {key} = {name!r}: scenes.{name}.subhalos.count must be a "
-            "uniform_int prior from 0 (U{0, N_max})"
-        )
-    sim, nfw = config["simulation"]["scenes"], config["cdm"]["nfw_scene"]
-    if nfw in sim and sim[name]["images_per_shard"] != sim[nfw]["images_per_shard"]:
-        problems.append(
-            f"config key {key} = {name!r}: simulation.scenes.{name}.images_per_shard must "
-            f"equal simulation.scenes.{nfw}.images_per_shard: each shard pairs with that "
-            "scene's subhalo-free re-render"
-        )
-    return problems
-
-
-#: Names of the concentration grids (figure 4's panels) in :func:`cdm_grids`.
-CDM_GRIDS = ("field", "reference")
-
-
-def cdm_grids(config: Mapping[str, Any]) -> dict[str, tuple[str, str | None]]:
-    """The concentration grids of a config, ``{grid: (nfw_scene, tnfw_scene)}``: ``field``
-    (``cdm.nfw_scene``/``tnfw_scene``, always) and ``reference``
-    (``cdm.reference_nfw_scene``/``reference_tnfw_scene``, when set: the reference
-    code's sets)."""
-    cdm = config["cdm"]
-    grids = {"field": (cdm["nfw_scene"], cdm["tnfw_scene"])}
-    if cdm.get("reference_nfw_scene"):
-        grids["reference"] = (cdm["reference_nfw_scene"], cdm.get("reference_tnfw_scene"))
-    return grids
-
-
-def cdm_scenes(config: Mapping[str, Any]) -> list[str]:
-    """Every CDM scene of :func:`cdm_grids`, in grid order, then ``cdm.extra_scenes``,
-    without repeats."""
-    names = [s for pair in cdm_grids(config).values() for s in pair if s]
-    return list(dict.fromkeys(names + list(config["cdm"].get("extra_scenes") or ())))
-
-
 def active_stages(config: Mapping[str, Any]) -> dict[str, bool]:
     """``{stage: runs}``: a stage runs when its flag and the flags of every stage it needs
     (:data:`STAGE_NEEDS`) are on, so a switched-off stage never runs as a dependency."""
@@ -317,7 +239,9 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
     ``images_per_set``; for the stages that run, the calibration and CDM scenes exist in
     ``simulation.scenes``, the calibrated stack sizes fit the stack scene's sets, and the
     CDM grid includes the prediction multiplier a = 1; the domain check's scene is
-    simulated and its percentile bounds are ordered.
+    simulated and its percentile bounds are ordered. What needs the scenes resolved (the
+    matched controls, the abundance series) is checked by
+    :func:`subslope.plan.plan_problems`.
     """
     problems: list[str] = []
     grid = config["inference"]["gamma_grid"]
@@ -326,8 +250,7 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
             f"config keys inference.gamma_grid.low/high = {grid['low']!r}/{grid['high']!r}: "
             "need low < high"
         )
-    simulated = config["simulation"]["scenes"]
-    for name, counts in simulated.items():
+    for name, counts in config["simulation"]["scenes"].items():
         per_set = _scene_value(config, name, "images_per_set")
         if isinstance(per_set, int) and per_set > 0 and counts["images_per_shard"] % per_set:
             problems.append(
@@ -336,83 +259,83 @@ def cross_key_problems(config: Mapping[str, Any]) -> list[str]:
                 f"must be a multiple of scenes.{name}.images_per_set = {per_set}"
             )
     stages = active_stages(config)
-    cal, cdm = config["calibration"], config["cdm"]
-    with_shards = shard_scenes(config)
-
-    def need_scene(key: str, name: str) -> bool:
-        if name in with_shards:
-            return True
-        why = (
-            " (training.data = stream: its images are simulated while training)"
-            if name in simulated
-            else ""
-        )
-        problems.append(
-            f"config key {key} = {name!r}: no shards of that scene{why}; simulated scenes "
-            f"with shards (simulation.scenes): {', '.join(sorted(with_shards)) or 'none'}"
-        )
-        return False
-
+    cal = config["calibration"]
     if stages["train"] and config["training"]["data"] == "stream":
         problems += _stream_problems(config)
     problems += _inputs_problems(config)
     if stages["calibrate"]:
-        need_scene("calibration.single_scene", cal["single_scene"])
-        if need_scene("calibration.stack_scene", cal["stack_scene"]):
-            per_set = _scene_value(config, cal["stack_scene"], "images_per_set")
-            too_big = [n for n in cal["n_images"] if n > 1 and n > per_set]
-            if too_big:
-                problems.append(
-                    f"config key calibration.n_images = {sorted(cal['n_images'])}: N > 1 must not "
-                    f"exceed the images_per_set = {per_set} of calibration.stack_scene "
-                    f"{cal['stack_scene']!r} (too large: {too_big})"
-                )
-    if stages["cdm_grid"]:
-        if need_scene("cdm.nfw_scene", cdm["nfw_scene"]):
-            mults = config["simulation"]["multipliers"] or _scene_value(
-                config, cdm["nfw_scene"], "concentration.multipliers"
-            )
-            if 1.0 not in [float(a) for a in mults]:
-                problems.append(
-                    f"config key simulation.multipliers = {list(mults)} must include 1.0 "
-                    "(the CDM prediction, a = 1)"
-                )
-        if cdm["tnfw_scene"]:
-            need_scene("cdm.tnfw_scene", cdm["tnfw_scene"])
-        for key in ("reference_nfw_scene", "reference_tnfw_scene"):
-            if cdm[key]:
-                need_scene(f"cdm.{key}", cdm[key])
-        if cdm["reference_tnfw_scene"] and not cdm["reference_nfw_scene"]:
+        problems += missing_scene(config, "calibration.single_scene", cal["single_scene"])
+        stack = missing_scene(config, "calibration.stack_scene", cal["stack_scene"])
+        problems += stack
+        per_set = None if stack else _scene_value(config, cal["stack_scene"], "images_per_set")
+        too_big = [n for n in cal["n_images"] if per_set and n > 1 and n > per_set]
+        if too_big:
             problems.append(
-                "config key cdm.reference_tnfw_scene is set but cdm.reference_nfw_scene is "
-                "null: the reference grid needs its NFW scene"
+                f"config key calibration.n_images = {sorted(cal['n_images'])}: N > 1 must not "
+                f"exceed the images_per_set = {per_set} of calibration.stack_scene "
+                f"{cal['stack_scene']!r} (too large: {too_big})"
             )
-        grids = cdm_grids(config)
-        for grid in ("field", "reference"):
-            for k, name in enumerate(cdm[f"{grid}_controls"]):
-                key = f"cdm.{grid}_controls[{k}]"
-                if grid not in grids:
-                    problems.append(
-                        f"config key {key} = {name!r}: the reference grid is off "
-                        "(cdm.reference_nfw_scene: null)"
-                    )
-                elif need_scene(key, name):
-                    problems += _control_problems(config, key, name, grids[grid][0])
-        for k, name in enumerate(cdm["extra_scenes"]):
-            need_scene(f"cdm.extra_scenes[{k}]", name)
-        for k, name in enumerate(cdm["abundance"]):
-            if need_scene(f"cdm.abundance[{k}]", name):
-                problems += _abundance_problems(config, f"cdm.abundance[{k}]", name)
+    if stages["cdm_grid"]:
+        problems += _cdm_problems(config)
     if stages["null_tests"]:
         for k, name in enumerate(config["null_tests"]["scenes"]):
-            need_scene(f"null_tests.scenes[{k}]", name)
-        if stages["calibrate"] and cal["stack_scene"] in with_shards:
+            problems += missing_scene(config, f"null_tests.scenes[{k}]", name)
+        if stages["calibrate"] and cal["stack_scene"] in shard_scenes(config):
             problems += _halo_free_problems(config)
     if stages["domain"]:
-        need_scene("domain.scene", config["domain"]["scene"])
+        problems += missing_scene(config, "domain.scene", config["domain"]["scene"])
         lo, hi = config["domain"]["bounds"]
         if not lo < hi:
             problems.append(f"config key domain.bounds = {[lo, hi]}: need low < high")
+    return problems
+
+
+def missing_scene(config: Mapping[str, Any], key: str, name: str) -> list[str]:
+    """The problem, if any, of config ``key`` naming scene ``name`` that has no shards."""
+    with_shards = shard_scenes(config)
+    if name in with_shards:
+        return []
+    why = (
+        " (training.data = stream: its images are simulated while training)"
+        if name in config["simulation"]["scenes"]
+        else ""
+    )
+    return [
+        f"config key {key} = {name!r}: no shards of that scene{why}; simulated scenes "
+        f"with shards (simulation.scenes): {', '.join(sorted(with_shards)) or 'none'}"
+    ]
+
+
+def _cdm_problems(config: Mapping[str, Any]) -> list[str]:
+    """The CDM stage's scenes have shards, the grid includes a = 1, and a reference
+    grid has its NFW scene wherever its tNFW scene or its controls are set."""
+    cdm = config["cdm"]
+    problems = missing_scene(config, "cdm.nfw_scene", cdm["nfw_scene"])
+    if not problems:
+        mults = config["simulation"]["multipliers"] or _scene_value(
+            config, cdm["nfw_scene"], "concentration.multipliers"
+        )
+        if 1.0 not in [float(a) for a in mults]:
+            problems.append(
+                f"config key simulation.multipliers = {list(mults)} must include 1.0 "
+                "(the CDM prediction, a = 1)"
+            )
+    for key in ("tnfw_scene", "reference_nfw_scene", "reference_tnfw_scene"):
+        if cdm[key]:
+            problems += missing_scene(config, f"cdm.{key}", cdm[key])
+    if cdm["reference_tnfw_scene"] and not cdm["reference_nfw_scene"]:
+        problems.append(
+            "config key cdm.reference_tnfw_scene is set but cdm.reference_nfw_scene is "
+            "null: the reference grid needs its NFW scene"
+        )
+    for key, name, kind in cdm_series(config):
+        if kind in CDM_GRIDS and kind not in cdm_grids(config):
+            problems.append(
+                f"config key {key} = {name!r}: the reference grid is off "
+                "(cdm.reference_nfw_scene: null)"
+            )
+        else:
+            problems += missing_scene(config, key, name)
     return problems
 
 

@@ -273,6 +273,40 @@ def hst_profiles(
     return _finish(fig, "Test-statistic profiles of individual HST lenses")
 
 
+def _interval_marks(g, t, interval, mle):
+    """``(lo, hi, mle, note)`` of fig. 6's annotation: the interval's ends (None without
+    one), the MLE (the grid minimum of ``t`` unless given) and the interval's flags."""
+    note = ""
+    if isinstance(interval, Interval):
+        lo, hi = interval.lower, interval.upper
+        mle = interval.mle if mle is None else mle
+        if interval.multimodal:
+            note += f"; hull of {len(interval.regions)} regions"
+        if interval.lower_at_edge or interval.upper_at_edge:
+            note += "; open at the prior edge"
+    elif interval is not None:
+        lo, hi = map(float, interval)
+    else:
+        lo = hi = None
+    if mle is None:
+        mle = float(g[np.argmin(t)])
+    return lo, hi, mle, note
+
+
+def _draw_hatched_bands(ax, bands) -> None:
+    """The reference code's a = 1 bands ``(band_nfw, band_tnfw)``, hatched."""
+    for label, band, color in zip(("NFW", "tNFW"), bands, (C_NFW, C_TNFW)):
+        if band is not None:
+            ax.axvspan(
+                *band,
+                fill=False,
+                hatch="///",
+                ec=color,
+                lw=0.8,
+                label=f"{label}, reference code's sets, $a$ = 1 (68%)",
+            )
+
+
 def hst_combined(
     gammas,
     t_combined,
@@ -303,20 +337,7 @@ def hst_combined(
     t = _to_t(t_combined, g, kind)
     if t.shape != g.shape:
         raise ValueError(f"t_combined must have the grid's shape {g.shape}, got {t.shape}")
-    note = ""
-    if isinstance(interval, Interval):
-        lo, hi = interval.lower, interval.upper
-        mle = interval.mle if mle is None else mle
-        if interval.multimodal:
-            note += f"; hull of {len(interval.regions)} regions"
-        if interval.lower_at_edge or interval.upper_at_edge:
-            note += "; open at the prior edge"
-    elif interval is not None:
-        lo, hi = map(float, interval)
-    else:
-        lo = hi = None
-    if mle is None:
-        mle = float(g[np.argmin(t)])
+    lo, hi, mle, note = _interval_marks(g, t, interval, mle)
     fig = Figure(figsize=(5.8, 4.3))
     ax = fig.subplots()
     bands = []
@@ -325,16 +346,7 @@ def hst_combined(
     if band_tnfw is not None:
         bands.append(("CDM tNFW subhalos, $a$ = 1 (68%)", band_tnfw, C_TNFW))
     _draw_bands(ax, bands)
-    for label, band, color in zip(("NFW", "tNFW"), reference_bands or (), (C_NFW, C_TNFW)):
-        if band is not None:
-            ax.axvspan(
-                *band,
-                fill=False,
-                hatch="///",
-                ec=color,
-                lw=0.8,
-                label=f"{label}, reference code's sets, $a$ = 1 (68%)",
-            )
+    _draw_hatched_bands(ax, reference_bands or ())
     ax.plot(g, t, color=C_HST, lw=2, label=f"HST, {n_images} lenses combined")
     ax.axhline(
         tau_13,

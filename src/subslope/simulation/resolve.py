@@ -8,7 +8,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from subslope.config import RUN_ONLY_RENDER_KEYS
-from subslope.simulation.scenes import Scene, merge_onto_preset
+from subslope.simulation.presets import merge_onto_preset
+from subslope.simulation.scenes import Scene
 
 __all__ = ["resolved_scene", "scene_multipliers", "simulation_sections"]
 

@@ -169,6 +169,24 @@ def _scene_grid(files, scene: str, mults, band, slopes) -> tuple[list[dict], np.
     return rows, mat
 
 
+def _controls(control, grid: str) -> list[tuple[float, float]]:
+    """``(γ, median)`` of the matched EPL controls of ``grid`` (none without a table)."""
+    if control is None:
+        return []
+    sel = control[control["grid"] == grid]
+    return list(zip(sel["gamma"].astype(float), sel["median"].astype(float)))
+
+
+def _grid_scenes(files, grid_scenes: Sequence[str | None]) -> list[str]:
+    """The scenes of ``files``: the grids' scenes first (in order), then any other."""
+    others = sorted({k[0] for k in files} - set(grid_scenes))
+    return [
+        s
+        for s in dict.fromkeys((*grid_scenes, *others))
+        if s is not None and any(k[0] == s for k in files)
+    ]
+
+
 def measure_cdm_grid(
     files: Mapping[tuple[str, float], Sequence],
     out_npz,
@@ -202,22 +220,11 @@ def measure_cdm_grid(
     slopes = pd.read_csv(effective_slopes_csv) if effective_slopes_csv else None
     control = pd.read_csv(control_csv) if control_csv else None
 
-    def controls(grid: str) -> list[tuple[float, float]]:
-        if control is None:
-            return []
-        sel = control[control["grid"] == grid]
-        return list(zip(sel["gamma"].astype(float), sel["median"].astype(float)))
-
     from subslope.figures.paper import concentration_grid
 
     mults = sorted({float(a) for _, a in files})
     ref_nfw, ref_tnfw = tuple(reference_scenes) if reference_scenes else (None, None)
-    others = sorted({k[0] for k in files} - {nfw_scene, tnfw_scene, ref_nfw, ref_tnfw})
-    scenes = [
-        s
-        for s in dict.fromkeys((nfw_scene, tnfw_scene, ref_nfw, ref_tnfw, *others))
-        if s is not None and any(k[0] == s for k in files)
-    ]
+    scenes = _grid_scenes(files, (nfw_scene, tnfw_scene, ref_nfw, ref_tnfw))
     rows, arrays = [], {"multipliers": np.asarray(mults)}
     for scene in scenes:
         scene_rows, arrays[f"mles_{scene}"] = _scene_grid(files, scene, mults, band, slopes)
@@ -238,7 +245,7 @@ def measure_cdm_grid(
         percentiles=(band[0], 50, band[1]),
         reference_nfw=_reference(slopes, nfw_scene, mults, band),
         reference_tnfw=_reference(slopes, tnfw_scene, mults, band) if tnfw_scene else None,
-        controls=controls("field"),
+        controls=_controls(control, "field"),
         second=None
         if ref_nfw is None
         else {
@@ -246,7 +253,7 @@ def measure_cdm_grid(
             "mles_tnfw": arrays.get(f"mles_{ref_tnfw}") if ref_tnfw else None,
             "reference_nfw": _reference(slopes, ref_nfw, mults, band),
             "reference_tnfw": _reference(slopes, ref_tnfw, mults, band) if ref_tnfw else None,
-            "controls": controls("reference"),
+            "controls": _controls(control, "reference"),
         },
     )
     save_figure(fig, fig_stem, run_name=run_name)

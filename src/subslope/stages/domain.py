@@ -81,7 +81,7 @@ def fit_hst_lens_light(config: Mapping[str, Any], hst_folder, out_csv, out_prior
     to ``out_prior`` (YAML)."""
     import yaml
 
-    from subslope.simulation.scenes import LENS_LIGHT_PRIORS
+    from subslope.simulation.presets import LENS_LIGHT_PRIORS
 
     psf, inst = build_psf(config), build_instrument(config)
     obs = load_hst(hst_folder)
