@@ -118,8 +118,12 @@ def test_the_manifest_is_written_once_and_checked(data_dir, tmp_path):
     assert "LENS4.npy changed since" in " ".join(plan_problems(config))
     (tmp_path / "LENS4.npy").unlink()
     assert "LENS4.npy (in" in " ".join(manifest_problems(tmp_path, catalog))
-    # θ_E outside the training prior is said, not refused (4 of the shipped 13 are)
-    assert [w.split(" ")[0] for w in theta_e_warnings(config, catalog)] == [
+    # θ_E outside the training prior is said, not refused: every lens lies inside the
+    # shipped prior, 4 of the 13 lie above the reference paper's 1.3"
+    assert theta_e_warnings(config, catalog) == []
+    paper = {"dist": "uniform", "low": 0.9, "high": 1.3}
+    narrow = _config(tmp_path, scenes={"train": {"main_lens": {"theta_e": paper}}})
+    assert [w.split(" ")[0] for w in theta_e_warnings(narrow, catalog)] == [
         "LENS1",
         "LENS3",
         "LENS5",

@@ -73,13 +73,18 @@ def test_the_changes_column_lists_what_each_variant_changes():
     assert changes["sources_multi_sersic"] == "scenes.*.source.kind=multi_sersic"
     sheet = changes["sheet_origin"].split("; ")
     assert "scenes.{nfw,test_epl,tnfw,train,validation}.subhalos.sheet_centre=origin" in sheet
-    assert any(p.startswith("scenes.{") and "null_nosub_los" in p for p in sheet)
-    assert not any("null_nosub," in p or "null_nosub}" in p for p in sheet)
+    # every scene the variant simulates (null_nosub is switched off by systematics.common)
+    assert "scenes.*.los.sheet_centre=origin" in sheet
     paper = set(changes["paper"].split("; "))
     assert paper == set(sheet) | {
         "scenes.*.lens_light.prior=table1",
         "scenes.*.components.sky=false",
         "simulation.sources.folder=[cosmos]",
+        # the paper's theta_E prior and the reference code's CDM sets
+        "scenes.*.main_lens.theta_e.high=1.3",
+        "scenes.{nfw,tnfw}.subhalos.count.high=12000",
+        "scenes.{nfw,tnfw}.subhalos.placement=landing",
+        "scenes.{nfw,tnfw}.subhalos.threshold_fraction=0.01",
     }
 
 
@@ -219,7 +224,16 @@ def test_variants_share_the_shards_they_do_not_alter(systematics_run, tiny_run):
     variants = systematics_run["out"] / "variants"
     own = _files(tiny_run)
     realism = _files(variants / "realism" / "results")
-    assert realism.keys() == own.keys()
+    # systematics.common switches the reference grid and the matched controls off
+    extra = {str(p).split("/")[1] for p in own.keys() - realism.keys()}
+    assert realism.keys() <= own.keys() and extra == {
+        "nfw_ref",
+        "tnfw_ref",
+        "epl_control_15",
+        "epl_control_24",
+        "epl_control_ref_15",
+        "epl_control_ref_24",
+    }
     for rel, path in realism.items():  # every shard of realism is the tiny campaign's
         assert path.read_bytes() == own[rel].read_bytes(), rel
         # as a file of its own: Snakemake touches the variant's outputs

@@ -377,11 +377,17 @@ def test_real_run_tiny_simulation(tiny_run, campaign):
     paths = sorted((results / "simulate_shard").rglob("*.h5"))
     rel = sorted(str(p.relative_to(results / "simulate_shard")) for p in paths)
     assert rel == [
+        "epl_control_15/shard_0.h5",
+        "epl_control_24/shard_0.h5",
+        "epl_control_ref_15/shard_0.h5",
+        "epl_control_ref_24/shard_0.h5",
         "nfw/a1/shard_0.h5",
+        "nfw_ref/a1/shard_0.h5",
         "null_nosub/shard_0.h5",
         "null_nosub_los/shard_0.h5",
         "test_epl/shard_0.h5",
         "tnfw/a1/shard_0.h5",
+        "tnfw_ref/a1/shard_0.h5",
         "train/shard_0.h5",
         "train/shard_1.h5",
         "validation/shard_0.h5",
@@ -441,14 +447,11 @@ def test_tiny_campaign_signal_budget_and_leave_one_out(tiny_run):
     import pandas as pd
 
     rows = pd.concat(pd.read_csv(p) for p in (tiny_run / "signal_budget").rglob("shard_0.csv"))
-    assert set(rows["scene"]) == {
-        "train",
-        "test_epl",
-        "nfw",
-        "tnfw",
-        "null_nosub",
-        "null_nosub_los",
-    }
+    controls = {"epl_control_15", "epl_control_24", "epl_control_ref_15", "epl_control_ref_24"}
+    cdm = {"nfw", "tnfw", "nfw_ref", "tnfw_ref"}
+    assert (
+        set(rows["scene"]) == {"train", "test_epl", "null_nosub", "null_nosub_los"} | cdm | controls
+    )
     assert np.isfinite(rows[["dchi2_fixed", "dchi2_linear", "dchi2_refit"]]).all().all()
     assert (rows["dchi2_linear"] <= rows["dchi2_fixed"] * (1 + 1e-9)).all()
     assert (rows["dchi2_refit"] <= rows["dchi2_fixed"] * (1 + 1e-9)).all()
@@ -456,7 +459,7 @@ def test_tiny_campaign_signal_budget_and_leave_one_out(tiny_run):
     nulls = rows[rows["scene"].str.startswith("null")]
     assert (nulls["dchi2_fixed"] == 0).all()
     table = pd.read_csv(tiny_run / "signal_budget" / "signal_budget.csv")
-    assert len(table) == 6 and (tiny_run / "figures" / "signal_budget.png").stat().st_size > 0
+    assert len(table) == 12 and (tiny_run / "figures" / "signal_budget.png").stat().st_size > 0
     loo = pd.read_csv(tiny_run / "analyze_hst" / "leave_one_out.csv")
     assert len(loo) == 2 and set(loo["n_images"]) == {1}
     summary = (tiny_run / "summary.md").read_text()
@@ -525,9 +528,10 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     cal = pd.read_csv(results / "summarize_coverage" / "calibration.csv")
     assert cal["n_images"].tolist() == [1, 2]
     grid = pd.read_csv(results / "measure_cdm_grid" / "cdm_grid.csv")
-    assert set(grid["scene"]) == {"nfw", "tnfw"} and set(grid["multiplier"]) == {1.0}
+    cdm = {"nfw", "tnfw", "nfw_ref", "tnfw_ref"}  # both grids
+    assert set(grid["scene"]) == cdm and set(grid["multiplier"]) == {1.0}
     slopes = pd.read_csv(results / "measure_cdm_grid" / "effective_slope.csv")
-    assert len(slopes) == 4 and set(slopes["scene"]) == {"nfw", "tnfw"}  # 2 sets per scene
+    assert len(slopes) == 8 and set(slopes["scene"]) == cdm  # 2 sets per scene
     assert np.all((slopes["gamma_eff"] > 1.0) & (slopes["gamma_eff"] < 3.0))
     for scene, group in slopes.groupby("scene"):
         row = grid[grid["scene"] == scene].iloc[0]
@@ -545,10 +549,12 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     for name in SUMMARY_TABLES:
         assert (results / f"{name}.csv").is_file(), name
     runtime = pd.read_csv(results / "stage_runtime.csv").set_index("stage")
-    assert runtime.loc["simulate", "jobs"] == 9 and runtime.loc["train", "seconds"] > 0
-    assert runtime.loc["evaluate", "jobs"] == 6  # validation, test_epl, 2 CDM, 2 null scenes
-    # null_tests, halo_free_profiles, halo_free_null, 2 subhalo_free_profiles, cdm_visibility
-    assert runtime.loc["null_tests", "jobs"] == 6
+    # 9 shards of the field grid's campaign, 2 of the reference grid, 4 matched controls
+    assert runtime.loc["simulate", "jobs"] == 15 and runtime.loc["train", "seconds"] > 0
+    # validation, test_epl, 4 CDM, 4 controls, 2 null scenes
+    assert runtime.loc["evaluate", "jobs"] == 12
+    # null_tests, halo_free_profiles, halo_free_null, 4 subhalo_free_profiles, cdm_visibility
+    assert runtime.loc["null_tests", "jobs"] == 8
     null = pd.read_csv(results / "null_tests" / "null_tests.csv")
     assert null["scene"].tolist() == ["null_nosub", "null_nosub_los"]
     assert (null["n_stacks"] == 2).all() and (null["n_per_stack"] == 2).all()
@@ -560,7 +566,8 @@ def test_real_run_tiny_campaign_outputs(tiny_run, campaign):
     assert bias["n_images"].sum() == 8
     assert "Rule `halo_free_null` not run" not in summary
     seen = pd.read_csv(results / "null_tests" / "cdm_visibility.csv")
-    assert seen["scene"].tolist() == ["nfw", "tnfw"] and (seen["n_sets"] == 2).all()
+    assert seen["scene"].tolist() == ["nfw", "nfw_ref", "tnfw", "tnfw_ref"]
+    assert (seen["n_sets"] == 2).all()
     assert seen["visible"].isin([True, False]).all() and "Rule `cdm_visibility`" not in summary
     assert (campaign / "logs" / "train_estimator.log").read_text().count("training done") == 1
 

@@ -186,12 +186,13 @@ def _leaves(tree: Any, prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], An
 def config_changes(reference: Mapping[str, Any], variant: Mapping[str, Any]) -> str:
     """The keys in which the validated ``variant`` differs from the validated
     ``reference``, as ``key=value`` joined by '; '; a change made in several scenes is
-    written once, as ``scenes.{a,b}.key`` (``scenes.*.key`` when in all of them). Paths
-    and ``run_name`` are not listed."""
+    written once, as ``scenes.{a,b}.key`` (``scenes.*.key`` when in every scene the
+    variant simulates). Paths and ``run_name`` are not listed."""
     ignore = {("run_name",), ("simulation", "shard_cache")}
     ignore |= {("data", key) for key in DATA_PATH_KEYS}
     old = _leaves(_config.validate(reference))
-    new = _leaves(_config.validate(variant))
+    full = _config.validate(variant)
+    new = _leaves(full)
     grouped: dict[tuple[tuple[str, ...], str], list[str]] = {}
     for key in sorted(set(old) | set(new)):
         if key in ignore or key[:1] == ("systematics",) or old.get(key) == new.get(key):
@@ -202,7 +203,7 @@ def config_changes(reference: Mapping[str, Any], variant: Mapping[str, Any]) -> 
             grouped.setdefault((("scenes", "{}", *key[2:]), value), []).append(key[1])
         else:
             grouped.setdefault((key, value), [])
-    scenes = set((variant.get("scenes") or {}).keys()) | set(reference.get("scenes") or {})
+    scenes = {n for n, c in full["simulation"]["scenes"].items() if c["n_shards"] > 0}
     parts = []
     for (key, value), names in grouped.items():
         if names:
