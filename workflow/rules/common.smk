@@ -618,7 +618,8 @@ def summary_inputs(wildcards):
             inputs["contrast"] = rules.concentration_contrast.output.csv
     classifier = sorted(glob.glob(f"{CLASSIFIER_DIR}/*.json"))
     if STAGE_ON["cdm_grid"] and classifier:
-        inputs["classifier"] = classifier  # studies/concentration_classifier.py writes them
+        # studies/concentration_classifier.py writes them
+        inputs["classifier"] = classifier
     if STAGE_ON["hst"] and os.path.exists(SEEDS_CSV):
         inputs["seeds"] = SEEDS_CSV  # `subslope seeds` writes it; no rule makes it
     return inputs
