@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import re
 import shutil
 from pathlib import Path
@@ -602,6 +603,44 @@ def test_a_psf_file_that_is_no_psf_library_is_refused_naming_key_and_file(tmp_pa
     # a resources folder outside the project is allowed, with a warning that says so
     (warning,) = [w for w in plan_warnings(config, root=REPO_ROOT) if "resources_dir" in w]
     assert "outside the project folder" in warning and "results" in warning
+
+
+def test_path_keys_outside_the_project_are_said_alike_by_the_workflow_and_validate_config(
+    tmp_path, data_dir, capsys
+):
+    """Every key a run writes under is said when it leaves the project, with what the run
+    writes there; validate-config resolves paths against the project folder wherever it
+    runs; a COSMOS folder may not leave the resources folder."""
+    from subslope.plan import OUTSIDE_KEYS, plan_problems, plan_warnings
+
+    config = cfg.validate(
+        {
+            "data": {"mirror": str(data_dir), "resources_dir": str(tmp_path / "res")},
+            "simulation": {"shard_cache": "/tmp/elsewhere/cache"},
+        }
+    )
+    warnings = " ".join(plan_warnings(config, root=REPO_ROOT))
+    assert "data.resources_dir" in warnings and "fetches the reference data" in warnings
+    assert "simulation.shard_cache" in warnings and "a copy of every shard" in warnings
+    assert set(OUTSIDE_KEYS) >= {"data.resources_dir", "simulation.shard_cache"}
+    bad = cfg.validate({"simulation": {"sources": {"folder": "../../../../etc"}}})
+    (problem,) = [p for p in plan_problems(bad) if "simulation.sources.folder" in p]
+    assert "'../../../../etc'" in problem and "inside data.resources_dir" in problem
+    overlay = tmp_path / "outside.yaml"
+    overlay.write_text(
+        f"base: {REPO_ROOT / 'config' / 'tiny.yaml'}\nsimulation: {{shard_cache: /tmp/x}}\n"
+    )
+    inside = REPO_ROOT / "config" / "tiny.yaml"
+    here = os.getcwd()
+    try:
+        os.chdir(tmp_path)  # not the project folder: the answer must not change
+        assert cli_main(["validate-config", str(inside), "--quiet"]) == 0
+        assert "warning" not in capsys.readouterr().err
+        assert cli_main(["validate-config", str(overlay), "--quiet"]) == 0
+    finally:
+        os.chdir(here)
+    err = capsys.readouterr().err
+    assert "warning: config key simulation.shard_cache = '/tmp/x' lies outside" in err
 
 
 def test_cost_of_a_campaign_follows_its_config():

@@ -143,3 +143,51 @@ def test_a_rank_that_dies_is_named_and_a_rerun_resumes(shards, tmp_path):
     launch(job, 2, module="subslope.stages.train", device_type="cpu")
     assert (tmp_path / "out" / "model.pt").is_file()
     assert torch_load(ckpt, "cpu", "test")["state"]["step"] > step
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie left to a container's init counts as gone)."""
+    try:
+        state = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    return "\nState:\tZ" not in state
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_job_takes_torchrun_and_its_ranks_with_it(shards, tmp_path):
+    job = {"training": _cfg(max_epochs=40, checkpoint_every=1, seed=5, early_stop_patience=40),
+           "train_shards": shards[0], "val_shards": shards[1], "whitening": None,
+           "out_dir": str(tmp_path / "out"), "ckpt_dir": str(tmp_path / "ck")}  # fmt: skip
+    marker = f"killed-{os.getpid()}"
+    code = (
+        "import json, sys\nfrom subslope.nre.distributed import launch\n"
+        "launch(json.loads(sys.argv[1]), 2, module='subslope.stages.train', device_type='cpu')"
+    )
+    env = dict(os.environ, SUBSLOPE_TEST_PARENT=marker)
+    proc = subprocess.Popen([sys.executable, "-c", code, json.dumps(job)], env=env)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((tmp_path / "ck").rglob("last.pt")):
+        time.sleep(0.5)
+    ranks = [_rank_pid(marker, r) for r in (0, 1)]
+    assert None not in ranks, "the ranks did not start"
+    proc.kill()  # the job's own process, as a cluster's OOM killer or kill -9 would
+    proc.wait()
+    deadline = time.time() + 60
+    while time.time() < deadline and any(_alive(p) for p in ranks):
+        time.sleep(0.5)
+    assert not any(_alive(p) for p in ranks), "ranks outlived their job"
+    left = [
+        status.parent.name
+        for status in Path("/proc").glob("[0-9]*/environ")
+        if _alive(int(status.parent.name)) and _environ_has(status, marker)
+    ]
+    assert not left, f"processes of the killed job still run: {left}"
+
+
+def _environ_has(path: Path, marker: str) -> bool:
+    try:
+        return f"SUBSLOPE_TEST_PARENT={marker}".encode() in path.read_bytes()
+    except OSError:
+        return False

@@ -63,3 +63,41 @@ def test_a_job_whose_outputs_were_put_in_place_is_forgotten(tmp_path):
     assert forget_jobs_of(["./resources/hst/x.npy"], root=tmp_path) == 1
     (record,) = (tmp_path / RECORDS).glob("*.json")
     assert "out/a.txt" in record.read_text()
+
+
+PARAM_JOB = """
+import os, signal, sys
+from subslope.logs import log_to_file
+log_to_file("job.log", outputs=["out/a.txt"], params={"p": sys.argv[2]})
+os.makedirs("out", exist_ok=True)
+open("out/a.txt", "w").write("made with p = " + sys.argv[2] if sys.argv[1] == "ok" else "half")
+if sys.argv[1] == "kill":
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def _param_job(tmp_path, how, p):
+    return subprocess.run(
+        [sys.executable, "-c", PARAM_JOB, how, p], cwd=tmp_path, capture_output=True
+    )
+
+
+def test_an_interrupted_rerun_of_the_same_parameters_keeps_the_restored_output(tmp_path):
+    """Snakemake puts an update() output back after a failed job (as a fresh copy): it is
+    correct, and left as it is, when a finished job of the same parameters wrote it; it
+    is aged when the interrupted job had other parameters or the file is another."""
+    out = tmp_path / "out" / "a.txt"
+    assert _param_job(tmp_path, "ok", "1").returncode == 0
+    made = out.read_text()
+
+    def interrupted(p, restored):
+        assert _param_job(tmp_path, "kill", p).returncode != 0
+        out.write_text(restored)  # what Snakemake's restore does: a copy of the backup
+        return mark_unfinished_outputs(tmp_path)
+
+    assert interrupted("1", made) == []  # the same parameters: nothing reruns
+    assert not list((tmp_path / RECORDS).glob("*.json"))
+    assert os.stat(out).st_mtime > 0
+    assert interrupted("2", made) == [out]  # the config changed: the job runs again
+    os.utime(out)
+    assert interrupted("1", "another file") == [out]  # not what the job made

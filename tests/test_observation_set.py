@@ -130,6 +130,50 @@ def test_the_manifest_is_written_once_and_checked(data_dir, tmp_path):
     ]
 
 
+def test_a_set_too_small_for_the_joint_prior_is_refused_before_any_job(data_dir, tmp_path):
+    rows = _make_set(data_dir, tmp_path)[:3]
+    with open(tmp_path / "catalog.csv", "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    for extra in ("LENS4.npy", "LENS5.npy"):
+        (tmp_path / extra).unlink()
+    assert main(["observations", "add", str(tmp_path), "--config", str(TINY)]) == 0
+    problems = " ".join(plan_problems(_config(tmp_path)))
+    assert "config key observations.folder" in problems and "lists 3 lens(es)" in problems
+    assert "needs at least 5" in problems and "stages.domain: false" in problems
+    assert plan_problems(_config(tmp_path, stages={"domain": False})) == []
+
+
+def test_manifest_lines_are_read_strictly_and_stay_in_the_folder(data_dir, tmp_path):
+    from subslope.io.resources import sha256sum
+
+    folder = tmp_path / "set"
+    _make_set(data_dir, folder)
+    assert main(["observations", "add", str(folder), "--config", str(TINY)]) == 0
+    manifest, catalog = folder / MANIFEST, folder / "catalog.csv"
+    good = manifest.read_text()
+    manifest.write_text(good + "not a manifest line\n")
+    problems = manifest_problems(folder, catalog)
+    assert len(problems) == 1 and "line 7 is not '<sha256>  <file>'" in problems[0]
+    outside = tmp_path / "outside.txt"
+    outside.write_text("not a lens\n")
+    for name in ("../outside.txt", str(outside)):  # a correct hash does not let it in
+        manifest.write_text(good + f"{sha256sum(outside)}  {name}\n")
+        problems = manifest_problems(folder, catalog)
+        assert len(problems) == 1 and f"names {name!r}, outside" in problems[0], problems
+    manifest.write_text(good)
+    rows = list(csv.DictReader(open(catalog, encoding="utf-8")))
+    rows[0]["file"] = "../outside.txt"
+    with open(catalog, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    assert "file '../outside.txt' must be a path inside the catalogue's folder" in " ".join(
+        manifest_problems(folder, catalog)
+    )
+
+
 def test_a_missing_folder_is_refused_by_its_key(tmp_path):
     problems = plan_problems(_config(tmp_path / "nowhere"))
     assert problems == [

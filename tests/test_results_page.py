@@ -7,7 +7,12 @@ import json
 
 import pytest
 
-from subslope.campaigns.results_page import ResultsPageError, results_page, verdicts
+from subslope.campaigns.results_page import (
+    SUMMARY_TABLES,
+    ResultsPageError,
+    results_page,
+    verdicts,
+)
 from subslope.cli import main
 
 SUMMARY = """# subslope campaign summary: `reduced`
@@ -36,6 +41,15 @@ def _campaign(root, hst_mle=1.5, overconfident="False"):
     )
     (root / "coverage.csv").write_text(f"n_images,overconfident\n1,False\n13,{overconfident}\n")
     (root / "trend.csv").write_text("rho,p_value,n\n0.9,1e-10,400\n")
+    (root / "halo_free.csv").write_text(
+        "variant,rho_stack,passes\noriginal,0.9,\nsheets_removed,0.01,True\n"
+    )
+    for name, header in (
+        ("cdm_prediction.csv", "scene,median,p16,p84,n_sets"),
+        ("cdm_visibility.csv", "scene,multiplier,visible,shift_mean,shift_mean_se"),
+        ("figure4.csv", "grid,nfw_scene,verdict"),
+    ):
+        (root / name).write_text(header + "\n")  # stage off: header only
     (root / "run.json").write_text(
         json.dumps({"machine": {"cpu": "Test CPU", "cores": 2, "torch": "x"}})
     )
@@ -47,6 +61,40 @@ def test_an_hst_reading_inside_the_null_range_is_called_a_symptom(tmp_path):
     assert "symptom, not a measurement" in text and "ρ = 0.90" in text
     text = " ".join(verdicts(_campaign(tmp_path / "b", hst_mle=2.2)))
     assert "symptom" not in text and "outside the 16–84% range" in text
+
+
+def test_a_complete_folder_reads_every_table(tmp_path):
+    root = _campaign(tmp_path / "a")
+    assert {p.name for p in root.glob("*.csv")} >= set(SUMMARY_TABLES)
+    text = " ".join(verdicts(root))
+    assert "not read" not in text and "not checked" not in text
+    assert "halo-free null test passes" in text
+
+
+def test_a_table_missing_or_cut_short_is_named_and_its_caveat_kept(tmp_path):
+    root = _campaign(tmp_path / "a", hst_mle=1.5)
+    (root / "null_tests.csv").unlink()
+    text = " ".join(verdicts(root))
+    assert "Not checked against the subhalo-free null stacks" in text
+    assert "not a measurement of γ" in text
+    assert "Tables not read**: null_tests.csv (missing)" in text
+    root = _campaign(tmp_path / "b")
+    halo = root / "halo_free.csv"
+    halo.write_text(halo.read_text()[:-12])  # a file cut short mid-row
+    text = " ".join(verdicts(root))
+    assert "halo-free null test: not checked" in text and "passes" not in text
+    assert "halo_free.csv (unreadable: line 3 has not 3 fields)" in text
+    (root / "coverage.csv").unlink()
+    assert "Held-out coverage: not checked" in " ".join(verdicts(root))
+
+
+def test_an_observation_set_deeper_than_the_null_stacks_is_not_checked(tmp_path):
+    root = _campaign(tmp_path / "a")
+    (root / "hst_result.csv").write_text(
+        "n_images,gamma_mle,lower,upper,lower_at_edge,upper_at_edge\n5,1.73,1.47,2.04,False,False\n"
+    )
+    text = " ".join(verdicts(root))
+    assert "no null scene is stacked 5 deep" in text and "outside" not in text
 
 
 def test_overconfident_stack_sizes_are_named(tmp_path):

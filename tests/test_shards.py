@@ -9,7 +9,7 @@ import pytest
 from subslope.io import shards
 
 
-def _write(path, seed=0, n=4, **kw):
+def _write(path, seed=0, n=4, attrs=None, **kw):
     rng = np.random.default_rng(seed)
     params = {k: rng.random(n) for k in ("theta_e", "lens_x", "lens_y", "gamma_sub")}
     params["set_index"] = np.arange(n)
@@ -23,7 +23,7 @@ def _write(path, seed=0, n=4, **kw):
         subhalos={"counts": counts, "x": rng.random(counts.sum())},
         los={"counts": np.zeros(n, np.int64)},
         sources={"ident": np.arange(n)},
-        attrs={"scene": "train", "scene_spec": {"a": [1, 2]}, "config_hash": "x"},
+        attrs={"scene": "train", "scene_spec": {"a": [1, 2]}, "config_hash": "x", **(attrs or {})},
         **kw,
     )
 
@@ -64,6 +64,41 @@ def test_refuses_to_overwrite(tmp_path):
     assert shards.file_sha256(path) == before
     _write(path, seed=3, overwrite=True)
     assert shards.file_sha256(path) != before
+
+
+def test_a_shard_copied_over_another_is_refused_by_every_reader(tmp_path):
+    """In the workflow's shard folder a shard must be the one its path names: scene,
+    index and multiplier (what ``cp shard_1.h5 shard_0.h5`` breaks)."""
+    root = tmp_path / "results" / shards.WORKFLOW_SHARD_FOLDER
+    one = _write(root / "train" / "shard_1.h5", attrs={"shard_index": 1, "multiplier": None})
+    zero = root / "train" / "shard_0.h5"
+    zero.write_bytes(one.read_bytes())
+    with pytest.raises(shards.ShardError, match=r"shard_0.h5 is not the shard its path names"):
+        shards.open_shard(zero)
+    with pytest.raises(shards.ShardError, match=r"shard_index '1' \(its path: '0'\)"):
+        shards.verify_shard(zero)
+    shards.open_shard(one).close()
+    cdm = _write(root / "nfw" / "a8" / "shard_0.h5", attrs={"scene": "nfw", "shard_index": 0,
+                                                          "multiplier": 8.0})  # fmt: skip
+    (root / "nfw" / "a1").mkdir()
+    moved = root / "nfw" / "a1" / "shard_0.h5"
+    moved.write_bytes(cdm.read_bytes())
+    with pytest.raises(shards.ShardError, match=r"multiplier '8' \(its path: '1'\)"):
+        shards.open_shard(moved)
+    other = root / "tnfw" / "a8" / "shard_0.h5"
+    other.parent.mkdir(parents=True)
+    other.write_bytes(cdm.read_bytes())
+    with pytest.raises(shards.ShardError, match=r"scene 'nfw' \(its path: 'tnfw'\)"):
+        shards.open_shard(other)
+    from subslope.plan import SHARD_DIR, shard_path
+
+    assert SHARD_DIR.split("/")[-1] == shards.WORKFLOW_SHARD_FOLDER
+    assert shard_path("nfw", 0, 8.0, root=str(root)) == str(root / "nfw" / "a8" / "shard_0.h5")
+    # outside the workflow's folder a shard is not held to its name
+    outside = tmp_path / "kept" / "shard_0.h5"
+    outside.parent.mkdir()
+    outside.write_bytes(one.read_bytes())
+    shards.open_shard(outside).close()
 
 
 def test_truncated_file(tmp_path):

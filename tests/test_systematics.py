@@ -275,3 +275,45 @@ def test_a_second_call_reruns_nothing(systematics_run):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stderr.count("Nothing to be done") == 2, proc.stderr[-3000:]
+
+
+CHILD = """
+import pathlib, signal, sys, time
+done = pathlib.Path(sys.argv[1])
+def stop(*_):
+    done.write_text("stopped its jobs and released its lock")
+    sys.exit(1)
+signal.signal(signal.SIGINT, stop)
+done.with_name("ready").write_text("")
+time.sleep(60)
+"""
+
+PARENT = """
+import sys
+from subslope.campaigns.systematics import run_to_end
+try:
+    run_to_end([sys.executable, "-c", sys.argv[1], sys.argv[2]])
+except KeyboardInterrupt:
+    sys.exit(130)
+"""
+
+
+def test_an_interrupted_campaign_command_lets_snakemake_stop(tmp_path):
+    """Ctrl-C of `subslope seeds` or `systematics` interrupts the Snakemake it runs and
+    waits for it (subprocess.run would kill it, leaving its lock behind)."""
+    import signal
+    import time
+
+    done = tmp_path / "done"
+    parent = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, str(done)])
+    deadline = time.time() + 60
+    while not (tmp_path / "ready").exists() and time.time() < deadline:
+        time.sleep(0.1)
+    parent.send_signal(signal.SIGINT)  # to the command only: it must pass it on
+    assert parent.wait(timeout=60) == 130
+    assert done.read_text() == "stopped its jobs and released its lock"
+
+
+def test_the_workflow_profile_resumes_an_interrupted_run():
+    profile = yaml.safe_load((REPO_ROOT / "profiles" / "default" / "config.yaml").read_text())
+    assert profile == {"rerun-incomplete": True}

@@ -29,6 +29,7 @@ __all__ = [
     "host_rules",
     "plan_problems",
     "plan_warnings",
+    "project_root",
     "theta_e_warnings",
     "slurm_gpu_problems",
     "multiplier_label",
@@ -40,7 +41,7 @@ __all__ = [
 ]
 
 #: Folder of the simulated shards (rule simulate_shard).
-SHARD_DIR = "results/simulate_shard"
+SHARD_DIR = "results/simulate_shard"  # io.shards.WORKFLOW_SHARD_FOLDER: tested equal
 
 
 def multiplier_label(a: float) -> str:
@@ -280,7 +281,24 @@ def _observation_problems(config: Mapping[str, Any]) -> list[str]:
         return []
     if not folder.is_dir():
         return [f"config key observations.folder = {str(folder)!r}: no such folder"]
-    return manifest_problems(folder, catalog) or cutout_problems(config, folder, catalog)
+    problems = manifest_problems(folder, catalog) or cutout_problems(config, folder, catalog)
+    return problems or _joint_fit_problems(config, folder, catalog)
+
+
+def _joint_fit_problems(config: Mapping[str, Any], folder: Path, catalog: Path) -> list[str]:
+    """The domain stage fits a joint lens-light prior to the set's lenses (rule
+    fit_lens_light), which needs :data:`~subslope.physics.light.fit.MIN_JOINT_FITS`."""
+    from subslope.io.observations import load_catalog
+    from subslope.physics.light.fit import MIN_JOINT_FITS
+
+    n = len(load_catalog(catalog))
+    if not _config.active_stages(config)["domain"] or n >= MIN_JOINT_FITS:
+        return []
+    return [
+        f"config key observations.folder = {str(folder)!r}: {catalog} lists {n} lens(es); "
+        f"the domain stage (stages.domain) fits a joint lens-light prior to them, which "
+        f"needs at least {MIN_JOINT_FITS}: add lenses, or set stages.domain: false"
+    ]
 
 
 def _not_registered(config, names, prefix: str, kind: str) -> tuple[list[str], str, str]:
@@ -333,20 +351,38 @@ def _psf_problems(config: Mapping[str, Any]) -> list[str]:
     return []
 
 
-#: Path keys of a config whose folder may lie outside the project (variants do that).
-OUTSIDE_KEYS = ("data.resources_dir", "simulation.shard_cache", "simulation.render.compile_cache")
+#: Path keys of a config under which a run writes, with what it writes there: said
+#: before the first job when one lies outside the project folder (variants do that on
+#: purpose; a slip would write fetched data or shards somewhere unexpected).
+OUTSIDE_KEYS = {
+    "data.resources_dir": "fetches the reference data (HST, PSF, COSMOS) into",
+    "simulation.shard_cache": "keeps a copy of every shard in",
+    "simulation.render.compile_cache": "writes compiled kernels to",
+    "systematics.folder": "writes the variant campaigns to",
+    "systematics.shard_cache": "keeps the variants' shards in",
+}
+
+
+def project_root(start: str | os.PathLike[str]) -> Path:
+    """The project folder of a config file at ``start``: its nearest ancestor holding a
+    ``Snakefile`` (where the workflow runs and resolves relative paths), else the working
+    directory."""
+    for folder in Path(start).resolve().parents:
+        if (folder / "Snakefile").is_file():
+            return folder
+    return Path.cwd()
 
 
 def plan_warnings(config: Mapping[str, Any], root: str | os.PathLike[str] = ".") -> list[str]:
     """Legitimate but surprising choices, to log before the first job: a path key of
-    :data:`OUTSIDE_KEYS` outside the project folder ``root``; a lens whose θ_E lies
-    outside the training prior."""
+    :data:`OUTSIDE_KEYS` outside the project folder ``root`` (saying what the run writes
+    there); a lens whose θ_E lies outside the training prior."""
     from subslope.io.observation_set import observation_folder
 
     base = Path(root).resolve()
     _, catalog, _ = observation_folder(config)
     out = theta_e_warnings(config, catalog) if catalog.is_file() else []
-    for key in OUTSIDE_KEYS:
+    for key, what in OUTSIDE_KEYS.items():
         value: Any = config
         for part in key.split("."):
             value = value.get(part) if isinstance(value, Mapping) else None
@@ -355,8 +391,8 @@ def plan_warnings(config: Mapping[str, Any], root: str | os.PathLike[str] = ".")
         path = (base / str(value)).resolve()
         if path != base and base not in path.parents:
             out.append(
-                f"config key {key} = {value!r} lies outside the project folder {base}; "
-                f"the campaign still writes its results to {base / 'results'}"
+                f"config key {key} = {value!r} lies outside the project folder {base}: the "
+                f"run {what} {path}; its results still go to {base / 'results'}"
             )
     return out
 
@@ -381,8 +417,16 @@ def theta_e_warnings(config: Mapping[str, Any], catalog, scene: str = "train") -
 
 
 def _cosmos_folder_problems(config: Mapping[str, Any]) -> list[str]:
+    from subslope.io.observations import inside_folder
+
     folder = config["simulation"]["sources"]["folder"]
     names = folder if isinstance(folder, list) else [folder]
+    outside = [n for n in names if not inside_folder(str(n))]
+    if outside:
+        return [
+            f"config key simulation.sources.folder: {outside} must name folders inside "
+            f"data.resources_dir = {config['data']['resources_dir']} (relative, no '..')"
+        ]
     missing, known, root = _not_registered(config, names, "cosmos", "folder")
     if not missing:
         return []

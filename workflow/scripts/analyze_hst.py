@@ -11,7 +11,7 @@ from subslope.logs import log_to_file
 from subslope.stages.hst import analyze_hst
 from subslope.stats.intervals import gamma_grid
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     pick_device(
         snakemake.params.device, key="inference.device"

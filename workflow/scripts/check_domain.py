@@ -8,7 +8,7 @@ from subslope.logs import log_to_file
 from subslope.nre.preprocess import read_whitening
 from subslope.stages.domain import check_domain, shard_images
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     verify_files(list(snakemake.input))  # the data files as fetched, or a clear error
     images, theta_e = shard_images(list(snakemake.input.shards), snakemake.params.n_images)

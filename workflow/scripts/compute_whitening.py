@@ -5,7 +5,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.simulate import compute_whitening
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     result = compute_whitening(
         snakemake.config, list(snakemake.input.shards), snakemake.output.json

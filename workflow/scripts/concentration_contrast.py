@@ -8,7 +8,7 @@ from subslope.render.kernels import use_compile_cache
 from subslope.simulation.sources import cosmos_folders
 from subslope.stages.signal_budget import concentration_contrast
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     use_compile_cache(snakemake.config["simulation"]["render"].get("compile_cache"))
     concentration_contrast(

@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.cdm_grid import effective_slope_table
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     table = effective_slope_table(snakemake.params.groups, snakemake.output.csv)
     logging.info(

@@ -10,7 +10,7 @@ from subslope.logs import log_to_file
 from subslope.stages.evaluate import evaluate_shard
 from subslope.stats.intervals import gamma_grid
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     pick_device(
         snakemake.params.device, key="inference.device"

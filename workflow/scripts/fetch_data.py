@@ -5,7 +5,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.data import fetch_files
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     fetch_files(
         snakemake.output,

@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.null_tests.halo_free import halo_free_null
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     inp = snakemake.input
     halo_free_null(

@@ -12,7 +12,7 @@ from subslope.render.kernels import use_compile_cache
 from subslope.stages.null_tests.halo_free import halo_free_shard
 from subslope.stats.intervals import gamma_grid
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     pick_device(snakemake.params.device, key="inference.device")
     use_compile_cache(snakemake.config["simulation"]["render"].get("compile_cache"))

@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.cdm_grid import measure_cdm_grid
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     files = {}
     for scene, multiplier, path in snakemake.params.groups:

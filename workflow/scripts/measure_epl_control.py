@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.cdm_grid import measure_epl_control
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     table = measure_epl_control(
         snakemake.params.groups, snakemake.output.csv, band=tuple(snakemake.params.band)

@@ -5,7 +5,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.null_tests import null_tests
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     files = {}
     for scene, path in snakemake.params.groups:

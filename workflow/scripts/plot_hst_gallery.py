@@ -6,7 +6,7 @@ from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
 from subslope.stages.gallery import plot_gallery
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     verify_files(list(snakemake.input))  # the data files as fetched, or a clear error
     plot_gallery(

@@ -5,7 +5,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.simulate import plot_scene_examples_from_shard
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     shown = plot_scene_examples_from_shard(
         snakemake.input.shard,

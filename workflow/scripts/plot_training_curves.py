@@ -5,7 +5,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.figures import plot_training_curves
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     plot_training_curves(
         snakemake.input.log_csv,

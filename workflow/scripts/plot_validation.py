@@ -7,7 +7,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.figures import plot_validation
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     trend = plot_validation(
         list(snakemake.input.single),

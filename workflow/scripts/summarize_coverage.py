@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.calibrate import summarize_coverage
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     table, thresholds = summarize_coverage(
         list(snakemake.input.npz),

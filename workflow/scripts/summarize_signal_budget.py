@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.signal_budget import summarize_signal_budget
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     table = summarize_signal_budget(
         snakemake.input.tables,

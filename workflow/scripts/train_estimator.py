@@ -12,7 +12,7 @@ from subslope.logs import log_to_file
 from subslope.stages.simulate import runnable_config
 from subslope.stages.train import run_training
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     pick_device(
         snakemake.params.device, key="training.device"

@@ -6,7 +6,7 @@ import logging
 from subslope.logs import log_to_file
 from subslope.stages.summary import write_run_record, write_summary
 
-log_to_file(snakemake.log[0], outputs=snakemake.output)
+log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
     inputs = snakemake.input
     trend = None

@@ -19,19 +19,68 @@ from typing import Any
 
 from subslope.io.atomic import write_text
 
-__all__ = ["ResultsPageError", "results_page", "verdicts", "write_results_page"]
+__all__ = [
+    "ResultsPageError",
+    "SUMMARY_TABLES",
+    "results_page",
+    "verdicts",
+    "write_results_page",
+]
 
 
 class ResultsPageError(ValueError):
     """The results folder is not that of a finished campaign."""
 
 
-def _rows(results: Path, name: str) -> list[dict[str, str]]:
-    path = results / name
-    if not path.is_file():
-        return []
-    with path.open(encoding="utf-8", newline="") as fh:
-        return list(csv.DictReader(fh))
+#: Tables ``write_summary`` writes beside ``summary.md`` (header-only where a stage is
+#: off) that the verdicts read: a finished campaign's folder holds every one.
+SUMMARY_TABLES = (
+    "trend.csv",
+    "coverage.csv",
+    "halo_free.csv",
+    "cdm_prediction.csv",
+    "cdm_visibility.csv",
+    "figure4.csv",
+    "hst_result.csv",
+    "null_tests.csv",
+)
+
+
+class _Tables:
+    """The CSVs of a results folder, read once each; remembers every table it could not
+    read (a summary table missing, or any table cut short) for the page to name."""
+
+    def __init__(self, results: Path):
+        self.results = results
+        self.unread: dict[str, str] = {}
+        self._cache: dict[str, list[dict[str, str]]] = {}
+
+    def rows(self, name: str) -> list[dict[str, str]]:
+        if name not in self._cache:
+            self._cache[name] = self._read(name)
+        return self._cache[name]
+
+    def read(self, name: str) -> bool:
+        """Whether ``name`` was read whole (after :meth:`rows`)."""
+        self.rows(name)
+        return name not in self.unread
+
+    def _read(self, name: str) -> list[dict[str, str]]:
+        path = self.results / name
+        if not path.is_file():
+            if name in SUMMARY_TABLES:
+                self.unread[name] = "missing"
+            return []
+        with path.open(encoding="utf-8", newline="") as fh:
+            reader = csv.DictReader(fh)
+            rows = list(reader)
+        width = len(reader.fieldnames or ())
+        short = [k for k, r in enumerate(rows, 2) if None in r.values() or None in r]
+        if not width or short:
+            where = f"line {short[0]} has not {width} fields" if short else "no header"
+            self.unread[name] = f"unreadable: {where}"
+            return []
+        return rows
 
 
 def _num(value: Any) -> float:
@@ -45,17 +94,19 @@ def _true(value: Any) -> bool:
     return str(value).strip().lower() == "true"
 
 
-def _in_distribution(results: Path) -> list[str]:
+def _in_distribution(t: _Tables) -> list[str]:
     out = []
-    trend = _rows(results, "trend.csv")
+    trend = t.rows("trend.csv")
     if trend and math.isfinite(_num(trend[0]["rho"])):
         out.append(
             f"On its own EPL test sets the estimator reads γ: Spearman ρ = "
             f"{_num(trend[0]['rho']):.2f} between the true γ and the stack γ_MLE "
             f"({trend[0]['n']} sets)."
         )
-    coverage = _rows(results, "coverage.csv")
-    if coverage:
+    coverage = t.rows("coverage.csv")
+    if not t.read("coverage.csv"):
+        out.append("Held-out coverage: not checked (coverage.csv could not be read).")
+    elif coverage:
         bad = [r["n_images"] for r in coverage if _true(r["overconfident"])]
         ns = ", ".join(r["n_images"] for r in coverage)
         out.append(
@@ -64,8 +115,10 @@ def _in_distribution(results: Path) -> list[str]:
             else f"Held-out coverage is more than 2σ below 68% at N = {', '.join(bad)}: "
             "the intervals of those stack sizes are too narrow."
         )
-    halo_free = {r["variant"]: r for r in _rows(results, "halo_free.csv")}
-    if "sheets_removed" in halo_free:
+    halo_free = {r["variant"]: r for r in t.rows("halo_free.csv")}
+    if not t.read("halo_free.csv"):
+        out.append("The halo-free null test: not checked (halo_free.csv could not be read).")
+    elif "sheets_removed" in halo_free:
         passes = _true(halo_free["sheets_removed"]["passes"])
         out.append(
             "With subhalos and line-of-sight halos removed the reading no longer follows "
@@ -85,8 +138,8 @@ def _in_distribution(results: Path) -> list[str]:
     return out
 
 
-def _cdm(results: Path) -> list[str]:
-    rows = _rows(results, "cdm_visibility.csv")
+def _cdm(t: _Tables) -> list[str]:
+    rows = t.rows("cdm_visibility.csv")
     if not rows:
         return []
 
@@ -118,24 +171,22 @@ def _cdm(results: Path) -> list[str]:
     return out
 
 
-def _figure4(results: Path) -> list[str]:
+def _figure4(t: _Tables) -> list[str]:
     """Figure 4's verdict per grid (``figure4.csv``, written by the summary from
     :func:`subslope.stages.cdm_grid.figure4_verdicts`)."""
-    if not (results / "figure4.csv").is_file():
-        return (
-            ["Figure 4: not checked (figure4.csv is missing)."]
-            if _rows(results, "cdm_prediction.csv")
-            else []
-        )
-    rows = _rows(results, "figure4.csv")
+    rows = t.rows("figure4.csv")
+    if not t.read("figure4.csv"):
+        return ["Figure 4: not checked (figure4.csv could not be read)."]
+    if not rows:
+        return []
     parts = "; ".join(f"{r['grid']} grid ({r['nfw_scene']}): {r['verdict']}" for r in rows)
     return [f"Figure 4, from its matched controls and the concentration contrast: {parts}."]
 
 
-def _reference(results: Path) -> list[str]:
+def _reference(t: _Tables) -> list[str]:
     rows = [
         r
-        for r in _rows(results, "measure_cdm_grid/cdm_grid.csv")
+        for r in t.rows("measure_cdm_grid/cdm_grid.csv")
         if r.get("reference") and math.isfinite(_num(r["reference"]))
     ]
     if not rows:
@@ -151,8 +202,8 @@ def _reference(results: Path) -> list[str]:
     ]
 
 
-def _seeds(results: Path) -> list[str]:
-    rows = _rows(results, "seeds/seeds.csv")
+def _seeds(t: _Tables) -> list[str]:
+    rows = t.rows("seeds/seeds.csv")
     if len(rows) < 2:
         return []
     g = [_num(r["hst_gamma_mle"]) for r in rows]
@@ -164,10 +215,8 @@ def _seeds(results: Path) -> list[str]:
     ]
 
 
-def _signal(results: Path) -> list[str]:
-    rows = [
-        r for r in _rows(results, "signal_budget/signal_budget.csv") if _num(r["fixed_p50"]) > 0
-    ]
+def _signal(t: _Tables) -> list[str]:
+    rows = [r for r in t.rows("signal_budget/signal_budget.csv") if _num(r["fixed_p50"]) > 0]
     if not rows:
         return []
     parts = [
@@ -181,8 +230,8 @@ def _signal(results: Path) -> list[str]:
     ]
 
 
-def _hst(results: Path) -> list[str]:
-    rows = _rows(results, "hst_result.csv")
+def _hst(t: _Tables) -> list[str]:
+    rows = t.rows("hst_result.csv")
     if not rows:
         return []
     r = rows[0]
@@ -192,11 +241,21 @@ def _hst(results: Path) -> list[str]:
         f"The {n} HST lenses combined read γ_MLE = {mle:.2f}, 68% interval [{lo:.2f}, "
         f"{hi:.2f}]" + (" (open at the prior edge: a bound at most)" if edge else "") + "."
     )
-    nulls = [x for x in _rows(results, "null_tests.csv") if x.get("n_per_stack") == n]
+    nulls = [x for x in t.rows("null_tests.csv") if x.get("n_per_stack") == n]
     inside = [
         x["scene"] for x in nulls if _num(x["stack_mle_p16"]) <= mle <= _num(x["stack_mle_p84"])
     ]
-    if inside:
+    if not t.read("null_tests.csv"):
+        text += (
+            " Not checked against the subhalo-free null stacks (null_tests.csv could not be "
+            "read): until it is, the number is not a measurement of γ."
+        )
+    elif not nulls:
+        text += (
+            f" Not checked against the subhalo-free null stacks: no null scene is stacked "
+            f"{n} deep, so the number is not a measurement of γ until one is."
+        )
+    elif inside:
         text += (
             f" That reading lies inside the 16–84% range of the {n}-image stacks of the "
             f"subhalo-free scenes ({', '.join(inside)}): the estimator cannot tell these "
@@ -208,8 +267,8 @@ def _hst(results: Path) -> list[str]:
     return [text]
 
 
-def _domain(results: Path) -> list[str]:
-    rows = _rows(results, "check_domain/domain_check.csv")
+def _domain(t: _Tables) -> list[str]:
+    rows = t.rows("check_domain/domain_check.csv")
     if not rows or "outside" not in rows[0]:
         return []
     systems = {r["system"] for r in rows}
@@ -221,10 +280,21 @@ def _domain(results: Path) -> list[str]:
 
 
 def verdicts(results) -> list[str]:
-    """One sentence per part of the campaign, computed from the CSVs of ``results``."""
-    results = Path(results)
+    """One sentence per part of the campaign, computed from the CSVs of ``results``; a
+    verdict whose table could not be read says "not checked", and the last sentence
+    names every such table (:data:`SUMMARY_TABLES` missing, any table cut short)."""
+    t = _Tables(Path(results))
     parts = (_in_distribution, _signal, _cdm, _figure4, _reference, _hst, _seeds, _domain)
-    return [line for part in parts for line in part(results)]
+    lines = [line for part in parts for line in part(t)]
+    for name in SUMMARY_TABLES:
+        t.rows(name)
+    if t.unread:
+        named = ", ".join(f"{name} ({why})" for name, why in sorted(t.unread.items()))
+        lines.append(
+            f"**Tables not read**: {named}. The verdicts that need them are not checked; "
+            "rerun the campaign's write_summary (or the stage that writes the table)."
+        )
+    return lines
 
 
 MEANING = """\

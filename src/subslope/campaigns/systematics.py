@@ -250,7 +250,37 @@ def run_variant(
         write_text(path, text)
     command = snakemake_command(variant, snakefile=snakefile, cores=cores, extra=extra)
     log.info("variant %s: %s", variant.name, " ".join(command))
-    subprocess.run(command, check=True)
+    run_to_end(command)
+
+
+#: Seconds an interrupted Snakemake gets to stop its jobs and release its lock.
+STOP_GRACE_S = 300
+
+
+def run_to_end(command: Sequence[str]) -> None:
+    """Run ``command`` (a Snakemake call) like ``subprocess.run(check=True)``, except on
+    Ctrl-C: the child is not killed (``subprocess.run`` would, leaving Snakemake's lock
+    and incomplete markers behind) but interrupted and waited for, so that it stops its
+    jobs and releases its lock; then KeyboardInterrupt is raised again. SIGINT is sent
+    only if the terminal's did not reach it, SIGTERM only after :data:`STOP_GRACE_S`."""
+    import signal
+
+    proc = subprocess.Popen(list(command))
+    try:
+        code = proc.wait()
+    except KeyboardInterrupt:
+        try:
+            proc.wait(timeout=2)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                proc.terminate()
+                proc.wait()
+        raise
+    if code:
+        raise subprocess.CalledProcessError(code, list(command))
 
 
 def _read_csv(path: Path, **kwargs):

@@ -32,6 +32,7 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import yaml
 
@@ -43,15 +44,25 @@ __all__ = ["main", "build_parser"]
 
 
 def _validate_config(args: argparse.Namespace) -> int:
-    from subslope.config import ConfigError, active_stages, load
-    from subslope.plan import plan_problems
+    """Check a config as the workflow does: relative paths resolved against the project
+    folder (:func:`subslope.plan.project_root`), whatever the working directory."""
+    import contextlib
 
-    try:
-        config = load(args.path, env=False)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    problems = plan_problems(config)
+    from subslope.config import ConfigError, active_stages, load
+    from subslope.plan import plan_problems, plan_warnings, project_root
+
+    path = Path(args.path).resolve()
+    root = project_root(path)
+    with contextlib.chdir(root):
+        try:
+            config = load(path, env=False)
+        except ConfigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        problems = plan_problems(config)
+        warnings = [] if problems else plan_warnings(config, root)
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     if not args.cluster:
         from subslope.devices import device_problems
 

@@ -29,6 +29,14 @@ from pathlib import Path
 __all__ = ["add_campaign_commands"]
 
 
+#: What an interrupted campaign command says: Snakemake stopped with its lock released,
+#: and the same command resumes (profiles/default/config.yaml: rerun-incomplete).
+INTERRUPTED = (
+    "interrupted while running {name}: Snakemake stopped its jobs and released its lock; "
+    "run the same command again to resume (the interrupted jobs run again)"
+)
+
+
 def add_campaign_commands(commands) -> None:
     """Add the commands of this module to the ``subslope`` sub-parsers ``commands``."""
     _add_systematics_command(commands)
@@ -75,6 +83,9 @@ def _systematics(args: argparse.Namespace) -> int:
     for variant in variants if not args.table_only else []:
         try:
             run_variant(variant, snakefile=snakefile, cores=args.cores, extra=extra)
+        except KeyboardInterrupt:
+            print(INTERRUPTED.format(name=f"variant {variant.name}"), file=sys.stderr)
+            return 130
         except subprocess.CalledProcessError as exc:
             print(
                 f"error: the campaign of variant {variant.name} failed (exit {exc.returncode});"
@@ -97,7 +108,7 @@ def _seeds(args: argparse.Namespace) -> int:
     import subprocess
 
     from subslope.campaigns.seeds import SEEDS_CSV, seed_variants, seeds_table, summary_command
-    from subslope.campaigns.systematics import SystematicsError, run_variant
+    from subslope.campaigns.systematics import SystematicsError, run_to_end, run_variant
     from subslope.config import ConfigError, read_files
 
     files = args.config or ["config/config.yaml"]
@@ -112,6 +123,9 @@ def _seeds(args: argparse.Namespace) -> int:
     for variant in variants if not args.table_only else []:
         try:
             run_variant(variant, snakefile=Path(args.snakefile), cores=args.cores, extra=extra)
+        except KeyboardInterrupt:
+            print(INTERRUPTED.format(name=variant.name), file=sys.stderr)
+            return 130
         except subprocess.CalledProcessError as exc:
             print(
                 f"error: the campaign of {variant.name} failed (exit {exc.returncode}); its "
@@ -130,7 +144,10 @@ def _seeds(args: argparse.Namespace) -> int:
         return 0
     command = summary_command(files, snakefile=args.snakefile, cores=args.cores, extra=extra)
     try:
-        subprocess.run(command, check=True)
+        run_to_end(command)
+    except KeyboardInterrupt:
+        print(INTERRUPTED.format(name="the summary"), file=sys.stderr)
+        return 130
     except subprocess.CalledProcessError as exc:
         print(f"error: updating results/summary.md failed (exit {exc.returncode})", file=sys.stderr)
         return 1

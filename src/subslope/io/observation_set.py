@@ -20,6 +20,7 @@ lie above the reference prior's 1.3″.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -58,7 +59,9 @@ def observation_folder(config: Mapping[str, Any]) -> tuple[Path, Path, bool]:
 
 
 def observation_files(folder, catalog) -> list[Path]:
-    """The catalogue and every file it names (cutouts and PSF files), in catalogue order."""
+    """The catalogue and every file it names (cutouts and PSF files), in catalogue order
+    (:func:`~subslope.io.observations.load_catalog` refuses a name that leaves the
+    folder)."""
     from subslope.io.observations import load_catalog
 
     folder, catalog = Path(folder), Path(catalog)
@@ -87,7 +90,7 @@ def write_manifest(folder, catalog) -> Path:
 def manifest_problems(folder, catalog) -> list[str]:
     """What does not match ``folder/manifest.sha256``: a missing manifest, a file missing
     or changed since it was written, a catalogued file it does not list."""
-    from subslope.io.observations import ObservationError
+    from subslope.io.observations import ObservationError, inside_folder
     from subslope.io.resources import sha256sum
 
     folder = Path(folder)
@@ -95,12 +98,20 @@ def manifest_problems(folder, catalog) -> list[str]:
     fix = f"check the files, then run `subslope observations add {folder}` to record them"
     if not path.is_file():
         return [f"{path} not found: {fix}"]
-    listed = {}
-    for line in path.read_text(encoding="utf-8").splitlines():
-        digest, _, name = line.strip().partition("  ")
-        if digest:
+    listed, out = {}, []
+    for k, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if not line.strip():
+            continue
+        digest, sep, name = line.strip().partition("  ")
+        if not (sep and re.fullmatch(r"[0-9a-f]{64}", digest) and name):
+            out.append(f"{path} line {k} is not '<sha256>  <file>' ({line[:80]!r}): {fix}")
+        elif not inside_folder(name):
+            out.append(
+                f"{path} line {k} names {name!r}, outside {folder}: a manifest lists files "
+                f"of its folder only; {fix}"
+            )
+        else:
             listed[name] = digest
-    out = []
     for name, digest in listed.items():
         file = folder / name
         if not file.is_file():

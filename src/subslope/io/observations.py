@@ -35,6 +35,7 @@ __all__ = [
     "CATALOG_COLUMNS",
     "OPTIONAL_COLUMNS",
     "find_lens_centre",
+    "inside_folder",
 ]
 
 #: Shape of every HST cutout of the analysis.
@@ -190,8 +191,16 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
     return out
 
 
+def inside_folder(name: str) -> bool:
+    """Whether the relative path ``name`` (a catalogue's or a manifest's) stays inside its
+    folder: not empty, not absolute, no ``..`` part, no backslash."""
+    return bool(name) and not (
+        Path(name).is_absolute() or ".." in Path(name).parts or "\\" in name
+    )
+
+
 def _check_inside(file: str, column: str, where: str) -> None:
-    if Path(file).is_absolute() or ".." in Path(file).parts or "\\" in file:
+    if not inside_folder(file):
         raise ObservationError(
             f"{where}: {column} {file!r} must be a path inside the catalogue's folder "
             "(relative, without '..')"

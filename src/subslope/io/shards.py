@@ -58,6 +58,8 @@ from subslope.io.atomic import atomic_write
 from subslope.ragged import counts_to_offsets
 
 __all__ = [
+    "WORKFLOW_SHARD_FOLDER",
+    "placement_problem",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "REQUIRED_DATASETS",
@@ -263,7 +265,40 @@ def _check_arrays(path, n: int, params, sources, subhalos, los) -> None:
 def _recovery(path) -> str:
     return (
         f"delete {path} and run snakemake again to simulate it anew (the same seed gives "
-        "the same shard), or restore it from a copy"
+        "the same shard), or restore that very shard (same scene, index and multiplier) "
+        "from a copy"
+    )
+
+
+#: The folder under which the workflow keeps its shards as
+#: ``<scene>/[a<multiplier>/]shard_<index>.h5`` (:func:`subslope.plan.shard_path`).
+WORKFLOW_SHARD_FOLDER = "simulate_shard"
+
+
+def placement_problem(path: Path, attrs: Mapping[str, Any]) -> str | None:
+    """Why a shard at ``path`` inside :data:`WORKFLOW_SHARD_FOLDER` is not the shard its
+    path names (scene, index, multiplier against its attributes), or None; shards kept
+    elsewhere are not checked."""
+    if WORKFLOW_SHARD_FOLDER not in path.parts[:-1] or not path.name.startswith("shard_"):
+        return None
+    index, folder = path.stem.removeprefix("shard_"), path.parent
+    want: dict[str, Any] = {"shard_index": index}
+    if folder.name.startswith("a") and folder.parent.name != WORKFLOW_SHARD_FOLDER:
+        want["multiplier"], folder = folder.name[1:], folder.parent
+    want["scene"] = folder.name
+    have = {
+        "scene": attrs.get("scene"),
+        "shard_index": str(attrs.get("shard_index")),
+        "multiplier": None if attrs.get("multiplier") is None else f"{attrs['multiplier']:g}",
+    }
+    wrong = [
+        f"{k} {have[k]!r} (its path: {v!r})" for k, v in want.items() if k in attrs and have[k] != v
+    ]
+    if not wrong:
+        return None
+    return (
+        f"{path} is not the shard its path names: it holds {', '.join(wrong)}; a shard "
+        f"copied over another is refused. {_recovery(path)[0].upper()}{_recovery(path)[1:]}"
     )
 
 
@@ -423,7 +458,9 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
     """Open and validate a shard; raises :class:`ShardError` naming the file.
 
     Checks: readable HDF5, ``format`` and ``format_version``, ``complete`` written,
-    the datasets of :data:`REQUIRED_DATASETS` present with ``n_images`` rows.
+    the datasets of :data:`REQUIRED_DATASETS` present with ``n_images`` rows, and in the
+    workflow's shard folder the scene, index and multiplier its path names
+    (:func:`placement_problem`).
     """
     path = Path(path)
     handle = open_hdf5(path)
@@ -463,7 +500,12 @@ def open_shard(path: str | os.PathLike[str]) -> Shard:
     except (OSError, KeyError, ValueError) as exc:
         handle.close()
         raise ShardError(f"{path} is corrupt: {exc}") from None
-    return Shard(path, handle)
+    shard = Shard(path, handle)
+    problem = placement_problem(path, shard.attrs)
+    if problem is not None:
+        shard.close()
+        raise ShardError(problem)
+    return shard
 
 
 def verify_shard(path: str | os.PathLike[str]) -> int:

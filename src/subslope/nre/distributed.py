@@ -23,6 +23,7 @@ all ranks stopped.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -47,6 +48,7 @@ __all__ = [
     "gather_labels",
     "global_mean",
     "RankDiedError",
+    "die_with_parent",
     "launch",
 ]
 
@@ -84,6 +86,23 @@ class Ranks:
             dist.barrier()
 
 
+def die_with_parent(parent: int | None = None) -> None:
+    """Have the kernel SIGKILL this process when its parent dies (Linux
+    ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing): a training job killed outright then
+    takes torchrun, and torchrun its ranks, instead of leaving them to write into outputs
+    that Snakemake has put back. ``parent``: the pid the parent had when it started this
+    process; if it is gone already, this process exits at once."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != (parent or os.getppid()) or os.getppid() == 1:
+        os._exit(1)  # the parent died before the request was made
+
+
 def setup_ranks(device: torch.device) -> Ranks:
     """Join the process group that ``torchrun`` describes (``RANK``, ``WORLD_SIZE``,
     ``LOCAL_RANK``, ``MASTER_ADDR``/``PORT``): NCCL on CUDA, gloo on CPU. One process
@@ -91,6 +110,7 @@ def setup_ranks(device: torch.device) -> Ranks:
     size = int(os.environ.get("WORLD_SIZE", "1"))
     if size == 1:
         return Ranks()
+    die_with_parent()  # torchrun's worker: gone with it
     rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
     if device.type == "cpu":
         torch.set_num_threads(1)
@@ -209,7 +229,8 @@ def launch(job: dict, ranks: int, *, module: str, device_type: str) -> None:
     ``run_training``); raises
     :class:`RankDiedError` naming the rank that failed first (its exit code or signal) when
     one does, after torchrun has stopped the others. A rerun resumes from the last
-    checkpoint."""
+    checkpoint. torchrun and the ranks die with this process (:func:`die_with_parent`),
+    however it ends."""
     command = [
         sys.executable, "-m", "torch.distributed.run", "--standalone",
         f"--nproc-per-node={int(ranks)}", "-m", module, json.dumps(job),
@@ -219,7 +240,12 @@ def launch(job: dict, ranks: int, *, module: str, device_type: str) -> None:
         for name in THREAD_VARIABLES:  # says: the sums then run in one order everywhere
             env[name] = "1"
     proc = subprocess.Popen(
-        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        command,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=functools.partial(die_with_parent, os.getpid()),
     )
     lines = []
     assert proc.stdout is not None

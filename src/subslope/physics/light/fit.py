@@ -326,6 +326,11 @@ JOINT_BOX = {
 }
 
 
+#: Fewest fits a joint lens-light prior is made from (:func:`joint_prior_from_fits`):
+#: a 4 × 4 sample covariance needs at least 5 points to be of full rank.
+MIN_JOINT_FITS = 5
+
+
 def joint_prior_from_fits(
     mag, r_sersic, n_sersic, q, *, widen: float = 1.5, digits: int = 5
 ) -> dict[str, object]:
@@ -334,8 +339,8 @@ def joint_prior_from_fits(
     (mag, ln R_s, n, q) (``ddof = 1``), standard deviations times ``widen``, in
     :data:`JOINT_BOX`; numbers rounded to ``digits`` significant digits."""
     x = np.stack([np.asarray(v, dtype=np.float64) for v in (mag, np.log(r_sersic), n_sersic, q)])
-    if x.shape[1] < 5:
-        raise ValueError(f"a joint prior needs at least 5 fits, got {x.shape[1]}")
+    if x.shape[1] < MIN_JOINT_FITS:
+        raise ValueError(f"a joint prior needs at least {MIN_JOINT_FITS} fits, got {x.shape[1]}")
 
     def sig(v: float) -> float:
         return float(f"{v:.{digits}g}")
