@@ -160,6 +160,9 @@ def test_a_killed_job_takes_torchrun_and_its_ranks_with_it(shards, tmp_path):
     job = {"training": _cfg(max_epochs=40, checkpoint_every=1, seed=5, early_stop_patience=40),
            "train_shards": shards[0], "val_shards": shards[1], "whitening": None,
            "out_dir": str(tmp_path / "out"), "ckpt_dir": str(tmp_path / "ck")}  # fmt: skip
+    whitening = tmp_path / "whitening.json"
+    whitening.write_text(json.dumps({"mean": WHITENING[0], "std": WHITENING[1]}))
+    job["whitening"] = str(whitening)
     marker = f"killed-{os.getpid()}"
     code = (
         "import json, sys\nfrom subslope.nre.distributed import launch\n"
@@ -169,6 +172,7 @@ def test_a_killed_job_takes_torchrun_and_its_ranks_with_it(shards, tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", code, json.dumps(job)], env=env)
     deadline = time.time() + 300
     while time.time() < deadline and not list((tmp_path / "ck").rglob("last.pt")):
+        assert proc.poll() is None, "the training ended before it could be killed"
         time.sleep(0.5)
     ranks = [_rank_pid(marker, r) for r in (0, 1)]
     assert None not in ranks, "the ranks did not start"

@@ -229,9 +229,19 @@ def test_figure4_verdicts_follow_their_tables():
         return figure4_verdicts(table, grids, **kw)[0]["verdict"]
 
     assert verdict(up, control=rising, contrast=contrast) == "the estimator reads a"
-    assert verdict(level, control=rising, contrast=contrast).startswith("the estimator misses")
+    # a large oracle contrast and no network that finds it: undecided, never "cannot"
+    assert verdict(level, control=rising, contrast=contrast).startswith("not settled")
+    chance = {"nfw": 0.52}
+    text = verdict(level, control=rising, contrast=contrast, classifier=chance)
+    assert text.startswith("not settled") and "stack AUC 0.52" in text
+    found = {"nfw": 0.9}
+    assert verdict(level, control=rising, contrast=contrast, classifier=found).startswith(
+        "the estimator misses what a direct classifier finds"
+    )
     assert verdict(level, control=rising, contrast=weak).startswith("the images cannot")
-    assert verdict(level, control=rising, classifier={"nfw": 0.52}).startswith("the images")
+    assert verdict(level, control=rising, contrast=weak, classifier=found).startswith(
+        "the images cannot"
+    )
     assert verdict(up, control=flat, contrast=contrast).startswith("no reading maps")
     assert verdict(up).startswith("not checked")  # no controls: never the favourable answer
     assert verdict(level, control=rising).startswith("not checked")

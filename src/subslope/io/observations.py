@@ -194,9 +194,7 @@ def load_catalog(path: str | os.PathLike[str]) -> list[dict]:
 def inside_folder(name: str) -> bool:
     """Whether the relative path ``name`` (a catalogue's or a manifest's) stays inside its
     folder: not empty, not absolute, no ``..`` part, no backslash."""
-    return bool(name) and not (
-        Path(name).is_absolute() or ".." in Path(name).parts or "\\" in name
-    )
+    return bool(name) and not (Path(name).is_absolute() or ".." in Path(name).parts or "\\" in name)
 
 
 def _check_inside(file: str, column: str, where: str) -> None:
