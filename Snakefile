@@ -10,6 +10,7 @@
 #   calibrate thresholds per N, coverage        cdm_grid  concentration grid (figure 4)
 #   hst       the 13 real lenses (figures 5, 6) figures   training curves, figures 2, 3
 #   null_tests scenes without subhalos          summary   results/summary.md
+#   signal_budget the ideal observer's Delta chi^2 of every scene's subhalos
 #
 # Every output is flagged update(): Snakemake leaves the previous version in place while
 # its job runs (a copy waits in .snakemake/backups/) and puts it back if the job fails,

@@ -104,14 +104,19 @@ def _rank_pid(parent: int, rank: int) -> int | None:
     return None
 
 
-@pytest.mark.slow
-def test_a_rank_that_dies_is_named_and_a_rerun_resumes(shards, tmp_path):
-    job = {"training": _cfg(max_epochs=40, checkpoint_every=1, seed=5, early_stop_patience=40),
-           "train_shards": shards[0], "val_shards": shards[1], "whitening": None,
-           "out_dir": str(tmp_path / "out"), "ckpt_dir": str(tmp_path / "ck")}  # fmt: skip
+def _long_job(shards, tmp_path) -> dict:
+    """A training job of 40 epochs with a checkpoint every epoch: long enough to be
+    interrupted once its first checkpoint is written."""
     whitening = tmp_path / "whitening.json"
     whitening.write_text(json.dumps({"mean": WHITENING[0], "std": WHITENING[1]}))
-    job["whitening"] = str(whitening)
+    return {"training": _cfg(max_epochs=40, checkpoint_every=1, seed=5, early_stop_patience=40),
+            "train_shards": shards[0], "val_shards": shards[1], "whitening": str(whitening),
+            "out_dir": str(tmp_path / "out"), "ckpt_dir": str(tmp_path / "ck")}  # fmt: skip
+
+
+@pytest.mark.slow
+def test_a_rank_that_dies_is_named_and_a_rerun_resumes(shards, tmp_path):
+    job = _long_job(shards, tmp_path)
     os.environ["SUBSLOPE_TEST_PARENT"] = str(os.getpid())
     errors: list[BaseException] = []
 
@@ -157,12 +162,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_a_killed_job_takes_torchrun_and_its_ranks_with_it(shards, tmp_path):
-    job = {"training": _cfg(max_epochs=40, checkpoint_every=1, seed=5, early_stop_patience=40),
-           "train_shards": shards[0], "val_shards": shards[1], "whitening": None,
-           "out_dir": str(tmp_path / "out"), "ckpt_dir": str(tmp_path / "ck")}  # fmt: skip
-    whitening = tmp_path / "whitening.json"
-    whitening.write_text(json.dumps({"mean": WHITENING[0], "std": WHITENING[1]}))
-    job["whitening"] = str(whitening)
+    job = _long_job(shards, tmp_path)
     marker = f"killed-{os.getpid()}"
     code = (
         "import json, sys\nfrom subslope.nre.distributed import launch\n"

@@ -4,6 +4,7 @@ records or commit hashes, an index for every script folder and for the notebook.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +81,40 @@ def test_index_names_every_page():
     pages = [p.name for p in DOCS.glob("*.md") if p.name != "index.md"]
     missing = [p for p in pages if f"({p})" not in index]
     assert not missing, f"docs/index.md does not link {missing}"
+
+
+def _pointer_sources() -> list[Path]:
+    """Where the project points a reader: config comments, the workflow's headers and
+    rules, the reference pages, the front page (not the notebook's dated records)."""
+    return [
+        *sorted((REPO_ROOT / "config").rglob("*.yaml")),
+        REPO_ROOT / "Snakefile",
+        *sorted((REPO_ROOT / "workflow" / "rules").glob("*.smk")),
+        *sorted((REPO_ROOT / "docs").glob("*.md")),
+        REPO_ROOT / "README.md",
+    ]
+
+
+def test_every_docs_path_and_stage_named_exists():
+    from subslope.config import STAGE_NEEDS
+
+    stages = set(STAGE_NEEDS) | {"data"}
+    missing = []
+    for path in _pointer_sources():
+        text = path.read_text(encoding="utf-8")
+        for m in re.finditer(r"(?<![\w/.])docs/[\w./-]*\w", text):
+            if not (REPO_ROOT / m.group(0)).exists():
+                missing.append(f"{path.relative_to(REPO_ROOT)}: {m.group(0)}")
+        for m in re.finditer(r"stage `(\w+)`", text):
+            if m.group(1) not in stages:
+                missing.append(f"{path.relative_to(REPO_ROOT)}: stage `{m.group(1)}`")
+    assert not missing, "\n".join(missing)
+
+
+def test_the_citation_file_carries_the_package_version():
+    import yaml
+
+    from subslope import __version__
+
+    cff = yaml.safe_load((REPO_ROOT / "CITATION.cff").read_text(encoding="utf-8"))
+    assert cff["version"] == __version__ and "arXiv:2308.09739" in str(cff)

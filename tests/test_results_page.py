@@ -3,6 +3,7 @@ and a folder that is not a finished campaign is refused by name."""
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -42,7 +43,7 @@ def _campaign(root, hst_mle=1.5, overconfident="False"):
     (root / "coverage.csv").write_text(f"n_images,overconfident\n1,False\n13,{overconfident}\n")
     (root / "trend.csv").write_text("rho,p_value,n\n0.9,1e-10,400\n")
     (root / "halo_free.csv").write_text(
-        "variant,rho_stack,passes\noriginal,0.9,\nsheets_removed,0.01,True\n"
+        "variant,n_stacks,rho_stack,passes\noriginal,20,0.9,\nsheets_removed,20,0.01,True\n"
     )
     for name, header in (
         ("cdm_prediction.csv", "scene,median,p16,p84,n_sets"),
@@ -83,7 +84,7 @@ def test_a_table_missing_or_cut_short_is_named_and_its_caveat_kept(tmp_path):
     halo.write_text(halo.read_text()[:-12])  # a file cut short mid-row
     text = " ".join(verdicts(root))
     assert "halo-free null test: not checked" in text and "passes" not in text
-    assert "halo_free.csv (unreadable: line 3 has not 3 fields)" in text
+    assert "halo_free.csv (unreadable: line 3 has not 4 fields)" in text
     (root / "coverage.csv").unlink()
     assert "Held-out coverage: not checked" in " ".join(verdicts(root))
 
@@ -134,3 +135,29 @@ def test_seeds_and_reference_curve_reach_the_page(tmp_path):
     assert any("nfw a = 1 1.53 against 1.71" in v for v in found)
     assert any("spans 1.41–1.79; 1 of 2 intervals are open" in v for v in found)
     assert "## Training seeds" in results_page(root)
+
+
+def test_the_summary_and_the_page_give_the_halo_free_test_one_verdict(tmp_path):
+    """One function decides (sheets_removed is the criterion; failing with the sheets
+    kept is what the sheets carry): the summary's section and the page agree."""
+    from subslope.stages.null_tests.halo_free import halo_free_verdict
+    from subslope.stages.summary import _halo_free_section
+
+    root = _campaign(tmp_path / "a")
+    (root / "halo_free.csv").write_text(
+        "variant,n_images,n_stacks,rho_single,rho_single_p,rho_stack,passes\n"
+        "original,26,20,0.4,0.001,0.9,\nsheets_kept,26,20,0.2,0.01,0.25,False\n"
+        "sheets_removed,26,20,0.0,0.9,-0.02,True\n"
+    )
+    rows = list(csv.DictReader(open(root / "halo_free.csv", encoding="utf-8")))
+    verdict = halo_free_verdict(rows)
+    assert verdict["passes"] and verdict["sheets_carry"] and not verdict["uninformative"]
+    page = " ".join(verdicts(root))
+    assert "halo-free null test passes" in page and "not a failure of the test" in page
+    bias = tmp_path / "bias.csv"
+    from subslope.stages.null_tests.halo_free import BIAS_COLUMNS
+
+    bias.write_text(",".join(BIAS_COLUMNS) + "\n" + ",".join(["1"] * len(BIAS_COLUMNS)) + "\n")
+    section = "".join(_halo_free_section(tmp_path, root / "halo_free.csv", bias))
+    assert "**passes**" in section and "**fails**" not in section
+    assert "sheets kept the γ_MLE still follows the label" in section

@@ -46,6 +46,7 @@ __all__ = [
     "variant_row",
     "halo_free_shard",
     "halo_free_null",
+    "halo_free_verdict",
 ]
 
 log = logging.getLogger(__name__)
@@ -402,3 +403,37 @@ def _sheet_kappas(
 def _shard_column(path, key: str) -> np.ndarray:
     with open_shard(path) as s:
         return np.asarray(s.params[key])
+
+
+def _truth(value: Any) -> bool:
+    return str(value).strip().lower() == "true"
+
+
+def halo_free_verdict(rows) -> dict[str, Any] | None:
+    """The halo-free null test's one verdict, from the rows of ``halo_free.csv`` (dicts
+    of a CSV reader or a DataFrame's records), used by the summary and the results page:
+
+    - ``passes``: the ``sheets_removed`` variant passes (with the halos and their
+      negative sheets removed the γ_MLE does not follow the label: γ reaches the
+      estimator through the halos); the test's criterion;
+    - ``sheets_carry``: the ``sheets_kept`` variant fails (with only the sheets left the
+      γ_MLE still follows the label: the sheets, whose amplitude is a function of the
+      members' γ, carry part of it); a finding about the channel, not a failure;
+    - ``uninformative``: the original images' stack ρ lies within 2/√(n − 1) of 0.
+
+    None without a ``sheets_removed`` row."""
+    by = {str(r["variant"]): r for r in rows}
+    if "sheets_removed" not in by:
+        return None
+    orig = by.get("original")
+    uninformative = False
+    if orig is not None and orig.get("n_stacks") not in (None, "") and orig.get("rho_stack"):
+        n = max(int(float(orig["n_stacks"])) - 1, 1)
+        uninformative = abs(float(orig["rho_stack"])) <= 2.0 / math.sqrt(n)
+    kept = by.get("sheets_kept")
+    return {
+        "passes": _truth(by["sheets_removed"]["passes"]),
+        "sheets_carry": kept is not None and not _truth(kept["passes"]),
+        "kept_rho_stack": None if kept is None else float(kept["rho_stack"]),
+        "uninformative": uninformative,
+    }
