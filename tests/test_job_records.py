@@ -88,7 +88,7 @@ def test_an_interrupted_rerun_of_the_same_parameters_keeps_the_restored_output(t
     is aged when the interrupted job had other parameters or the file is another."""
     out = tmp_path / "out" / "a.txt"
     assert _param_job(tmp_path, "ok", "1").returncode == 0
-    made = out.read_text()
+    made, made_at = out.read_text(), out.stat().st_mtime_ns
 
     def interrupted(p, restored):
         assert _param_job(tmp_path, "kill", p).returncode != 0
@@ -97,7 +97,7 @@ def test_an_interrupted_rerun_of_the_same_parameters_keeps_the_restored_output(t
 
     assert interrupted("1", made) == []  # the same parameters: nothing reruns
     assert not list((tmp_path / RECORDS).glob("*.json"))
-    assert os.stat(out).st_mtime > 0
+    assert out.stat().st_mtime_ns == made_at  # as made: what follows it stays up to date
     assert interrupted("2", made) == [out]  # the config changed: the job runs again
     os.utime(out)
     assert interrupted("1", "another file") == [out]  # not what the job made

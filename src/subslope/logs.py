@@ -11,10 +11,11 @@ of every output such a record names to the epoch, older than any input: the job 
 again, and until it succeeds nothing downstream takes the restored file for new.
 
 The record also holds a fingerprint of the job's parameters; a job that finishes leaves
-that fingerprint and the SHA-256 of each output under :data:`MADE`. A restored output
-whose content is what a job of the same parameters made (an interrupted forced rerun
-with the config unchanged) is correct as it is: its record is dropped and nothing
-downstream reruns.
+that fingerprint and the SHA-256 and time stamp of each output under :data:`MADE`. A
+restored output whose content is what a job of the same parameters made (an interrupted
+forced rerun with the config unchanged) is correct as it is: its record is dropped and
+it gets back the time stamp it was made with (Snakemake's restore writes a fresh copy),
+so nothing downstream reruns.
 """
 
 from __future__ import annotations
@@ -70,6 +71,13 @@ def params_fingerprint(params: Any) -> str | None:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
+def _mtime_ns(path: Path) -> int | None:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
 def _digest(path: Path) -> str | None:
     """SHA-256 of a file's bytes, None where there is no file (or a folder)."""
     if not path.is_file():
@@ -99,7 +107,7 @@ def _finished(root: Path, outputs: list[str], record: Path, fingerprint: str | N
     if fingerprint is None:
         made.unlink(missing_ok=True)
     else:
-        made_outputs = {o: _digest(root / o) for o in outputs}
+        made_outputs = {o: [_digest(root / o), _mtime_ns(root / o)] for o in outputs}
         _write_json(made, {"params": fingerprint, "outputs": made_outputs})
     record.unlink(missing_ok=True)
 
@@ -138,7 +146,8 @@ def _read_record(record: Path) -> dict[str, Any] | None:
 
 def _restored_as_made(root: Path, record: Path, data: Mapping[str, Any]) -> bool:
     """Whether every output of the unfinished job ``data`` holds what the last finished
-    job of the same parameters wrote there."""
+    job of the same parameters wrote there; if so, each gets back the time stamp it was
+    written with."""
     made_path = root / MADE / record.name
     if data.get("params") is None or not made_path.is_file():
         return False
@@ -147,9 +156,14 @@ def _restored_as_made(root: Path, record: Path, data: Mapping[str, Any]) -> bool
     except (OSError, ValueError):
         return False
     wrote = made.get("outputs") or {}
-    return made.get("params") == data["params"] and all(
-        wrote.get(o) is not None and _digest(root / o) == wrote[o] for o in data["outputs"]
+    same = made.get("params") == data["params"] and all(
+        isinstance(wrote.get(o), list) and _digest(root / o) == wrote[o][0] for o in data["outputs"]
     )
+    if same:
+        for o in data["outputs"]:
+            if wrote[o][1] is not None:
+                os.utime(root / o, ns=(wrote[o][1], wrote[o][1]))
+    return same
 
 
 def mark_unfinished_outputs(root: str | os.PathLike[str] = ".") -> list[Path]:
