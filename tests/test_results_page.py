@@ -141,7 +141,7 @@ def test_the_summary_and_the_page_give_the_halo_free_test_one_verdict(tmp_path):
     """One function decides (sheets_removed is the criterion; failing with the sheets
     kept is what the sheets carry): the summary's section and the page agree."""
     from subslope.stages.null_tests.halo_free import halo_free_verdict
-    from subslope.stages.summary import _halo_free_section
+    from subslope.stages.summary import write_summary
 
     root = _campaign(tmp_path / "a")
     (root / "halo_free.csv").write_text(
@@ -158,6 +158,10 @@ def test_the_summary_and_the_page_give_the_halo_free_test_one_verdict(tmp_path):
     from subslope.stages.null_tests.halo_free import BIAS_COLUMNS
 
     bias.write_text(",".join(BIAS_COLUMNS) + "\n" + ",".join(["1"] * len(BIAS_COLUMNS)) + "\n")
-    section = "".join(_halo_free_section(tmp_path, root / "halo_free.csv", bias))
+    out = tmp_path / "s" / "summary.md"
+    write_summary(
+        out, run_name="t", config_hash="x", halo_free_csv=root / "halo_free.csv", bias_csv=bias
+    )
+    section = out.read_text(encoding="utf-8")
     assert "**passes**" in section and "**fails**" not in section
     assert "sheets kept the γ_MLE still follows the label" in section
