@@ -262,3 +262,13 @@ def test_the_results_page_names_a_missing_figure4_table(tmp_path):
         "grid,nfw_scene,verdict\nfield,nfw,the images cannot order a (ideal observer)\n"
     )
     assert any("field grid (nfw): the images cannot order a" in v for v in verdicts(tmp_path))
+
+
+def test_multipliers_are_one_value_within_one_tolerance():
+    from subslope.simulation.resolve import MULTIPLIER_RTOL, same_multiplier
+
+    assert same_multiplier(8.0, 8.0 * (1 + MULTIPLIER_RTOL / 2))
+    assert not same_multiplier(8.0, 8.0 * (1 + 10 * MULTIPLIER_RTOL))
+    column = pd.Series([0.5, 1.0, 1.0 + 1e-12, 8.0])
+    np.testing.assert_array_equal(same_multiplier(column, 1.0), [False, True, True, False])
+    assert not same_multiplier(0.0, 1e-300)  # no absolute slack near zero

@@ -7,11 +7,32 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from subslope.config import RUN_ONLY_RENDER_KEYS
 from subslope.simulation.presets import merge_onto_preset
 from subslope.simulation.scenes import Scene
 
-__all__ = ["resolved_scene", "scene_multipliers", "simulation_sections"]
+__all__ = [
+    "MULTIPLIER_RTOL",
+    "resolved_scene",
+    "same_multiplier",
+    "scene_multipliers",
+    "simulation_sections",
+]
+
+#: Relative tolerance within which two concentration multipliers are one value (the
+#: config's floats, the shards' attributes and the tables' columns all round-trip well
+#: within it): the one test of multiplier equality.
+MULTIPLIER_RTOL = 1e-9
+
+
+def same_multiplier(values, a: float):
+    """Whether ``values`` (a multiplier, or an array or column of them) equal the
+    multiplier ``a`` within :data:`MULTIPLIER_RTOL` (elementwise for arrays)."""
+    return np.isclose(
+        np.asarray(values, dtype=np.float64), float(a), rtol=MULTIPLIER_RTOL, atol=0.0
+    )
 
 
 def resolved_scene(config: Mapping[str, Any], name: str) -> tuple[Scene, dict[str, Any]]:

@@ -37,7 +37,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-import math
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -62,7 +61,12 @@ from subslope.simulation.precision import (
     rounded_los,
     stored,
 )
-from subslope.simulation.resolve import resolved_scene, scene_multipliers, simulation_sections
+from subslope.simulation.resolve import (
+    resolved_scene,
+    same_multiplier,
+    scene_multipliers,
+    simulation_sections,
+)
 from subslope.simulation.sources import (
     cosmos_folders,
     draw_sources,
@@ -502,7 +506,7 @@ def _shard_request(config: Mapping[str, Any], scene: str, shard: int, multiplier
         return int(counts["images_per_shard"]), spec, None
     if multiplier is None:
         raise ValueError(f"scene {scene!r} is a CDM scene: pass multiplier = one of {list(mults)}")
-    matches = [k for k, a in enumerate(mults) if math.isclose(a, float(multiplier), rel_tol=1e-12)]
+    matches = [k for k, a in enumerate(mults) if same_multiplier(a, multiplier)]
     if not matches:
         raise ValueError(
             f"multiplier = {multiplier!r} is not among {list(mults)} of scene {scene!r}"

@@ -14,6 +14,7 @@ import numpy as np
 from subslope.figures.save import save_figure
 from subslope.io.atomic import atomic_write, write_text
 from subslope.io.ratio_profiles import read_profiles
+from subslope.simulation.resolve import same_multiplier
 from subslope.stages.calibrate import set_stacks
 
 __all__ = [
@@ -128,7 +129,7 @@ def _reference(slopes, scene: str, multipliers, band) -> np.ndarray | None:
         return None
     out = np.full((3, len(multipliers)), np.nan)
     for i, a in enumerate(multipliers):
-        sel = slopes[(slopes["scene"] == scene) & np.isclose(slopes["multiplier"], a)]
+        sel = slopes[(slopes["scene"] == scene) & same_multiplier(slopes["multiplier"], a)]
         g = sel["gamma_eff"].to_numpy(dtype=np.float64)
         g = g[np.isfinite(g)]
         if g.size:
@@ -264,7 +265,7 @@ def cdm_band(table, scene: str, multiplier: float = 1.0) -> tuple[float, float, 
     """``(median, lo, hi)`` of ``scene`` at ``multiplier`` from a cdm_grid table (or None)."""
     if table is None or not len(table):
         return None
-    sel = table[(table["scene"] == scene) & np.isclose(table["multiplier"], multiplier)]
+    sel = table[(table["scene"] == scene) & same_multiplier(table["multiplier"], multiplier)]
     if not len(sel):
         return None
     r = sel.iloc[0]

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from subslope.io.atomic import write_csv, write_text
+from subslope.simulation.resolve import same_multiplier
 from subslope.stages.cdm_grid import ABUNDANCE_COLUMNS, CONTROL_COLUMNS, cdm_band, control_slope
 from subslope.stages.markdown import md_table
 from subslope.stages.null_tests.visibility import VISIBILITY_COLUMNS
@@ -62,7 +63,9 @@ def _cdm_section(
         b = cdm_band(cdm, scene)
         if b is not None:
             n_sets = int(
-                cdm[(cdm["scene"] == scene) & np.isclose(cdm["multiplier"], 1.0)]["n_sets"].iloc[0]
+                cdm[(cdm["scene"] == scene) & same_multiplier(cdm["multiplier"], 1.0)][
+                    "n_sets"
+                ].iloc[0]
             )
             rows.append(
                 {"scene": scene, "median": b[0], "p16": b[1], "p84": b[2], "n_sets": n_sets}
