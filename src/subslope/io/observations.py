@@ -7,8 +7,9 @@ They are read from ``.npy`` files (the public files are big-endian float32) or F
 indexed ``image[row, column]`` = ``image[y, x]`` (see docs/design.md).
 
 ``catalog.csv`` has the columns ``file, system, z_lens, z_source, theta_E_arcsec``;
-``system`` is the SDSS J name used in tables and figures (the file names of some
-cutouts are plate-MJD-fibre ids). A catalogue of other lenses may add the columns
+``system`` is the lens's name in tables and figures, as its catalogue gives it (the
+shipped set uses SDSS J names; the file names of some of its cutouts are plate-MJD-fibre
+ids). A catalogue of other lenses may add the columns
 ``exposure_time`` (s), ``pixel_scale`` (arcsec) and ``psf_file`` (a PSF image in the
 same folder) per lens (:data:`OPTIONAL_COLUMNS`; :mod:`subslope.io.observation_set`).
 """
@@ -57,7 +58,7 @@ class Observation:
 
     Attributes
     ----------
-    name: SDSS system name, e.g. ``"SDSSJ0946+1006"``.
+    name: the catalogue's ``system`` name of the lens.
     image: (100, 100) float64 array, e⁻/s per pixel, read-only.
     z_lens, z_source: lens and source redshifts.
     theta_e: Einstein radius in arcsec (SLACS).
