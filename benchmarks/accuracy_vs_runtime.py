@@ -18,6 +18,10 @@ seconds/image against max |Δ|/σ_noise and against relative L2, the Pareto fron
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/accuracy_vs_runtime.py \
         --csv docs/performance_knobs.csv --plot docs/performance_pareto.png
+
+``--scene nfw:12000 --knobs population,split`` measures the population knobs on a
+reference CDM scene instead (NFW subhalos everywhere, N_sub = 12,000, LoS; only the
+settings whose label holds one of the given words, the default first and last).
 """
 
 from __future__ import annotations
@@ -117,7 +121,12 @@ def time_it(fn, repeats: int, n: int) -> tuple[float, float]:
 
 def run(args) -> list[dict]:
     base = R.RenderSettings(device="cpu")
-    batch = C.make_scene("train", args.n_img, 1500, True, seed=args.seed, delta_los=1.0)
+    kind, n_sub = args.scene.split(":")
+    batch = C.make_scene(kind, args.n_img, int(n_sub), True, seed=args.seed, delta_los=1.0)
+    knobs = KNOBS
+    if args.knobs:
+        words = args.knobs.split(",")
+        knobs = [k for k in KNOBS if k[0].startswith("default") or any(w in k[0] for w in words)]
     refs: dict[int, torch.Tensor] = {}
     rows = []
     hi = None
@@ -127,7 +136,7 @@ def run(args) -> list[dict]:
             dataclasses.replace(ref_of(base), supersample=args.k_ref, chunk_members=8)
         )
         print(f"k={args.k_ref} float64 reference: {time.perf_counter() - t0:.0f} s", flush=True)
-    for label, over in KNOBS:
+    for label, over in knobs:
         s = dataclasses.replace(base, **over)
         if s.supersample not in refs:
             refs[s.supersample] = batch.render(ref_of(s))
@@ -272,7 +281,7 @@ def plot(rows: list[dict], path: str) -> None:
         ax.set_ylabel(lab)
         ax.legend(fontsize=7, loc="upper right")
     fig.suptitle(
-        "subslope render: N_sub = 1500 + LoS, error vs float64/n_terms=30 reference (same "
+        f"subslope render: {rows[0]['scene']}, error vs float64/n_terms=30 reference (same "
         "supersampling)",
         fontsize=9,
     )
@@ -294,6 +303,12 @@ def main() -> None:
         help="supersampling of the pixel-integration reference (0: skip)",
     )
     ap.add_argument("--no-cosmos", action="store_true")
+    ap.add_argument(
+        "--scene", default="train:1500", help="kind:N_sub of the scene (train, nfw or tnfw)"
+    )
+    ap.add_argument(
+        "--knobs", default=None, help="comma-separated words: only the settings naming one"
+    )
     ap.add_argument("--csv", default=None)
     ap.add_argument("--plot", default=None)
     args = ap.parse_args()

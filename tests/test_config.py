@@ -644,14 +644,26 @@ def test_path_keys_outside_the_project_are_said_alike_by_the_workflow_and_valida
 
 
 def test_cost_of_a_campaign_follows_its_config():
-    from subslope.campaigns.cost import campaign_cost
+    from subslope.campaigns.cost import campaign_cost, scene_cost_factor
+    from subslope.plan import shard_jobs
 
     paper = cfg.load(REPO_ROOT / "config" / "paper.yaml", env=False)
     cost = campaign_cost(
         paper, seconds_per_image=0.05, bytes_per_image=40_000, gpu_images_per_s=500
     )
     assert cost.training_images == 5_000_000 and cost.images > cost.training_images
-    assert cost.cpu_hours_simulation == pytest.approx(cost.images * 0.05 / 3600)
+    assert cost.cpu_hours_simulation == pytest.approx(sum(cost.cpu_hours_by_scene.values()))
+    jobs = shard_jobs(paper)
+    for name, hours in cost.cpu_hours_by_scene.items():
+        images = sum(paper["simulation"]["scenes"][name]["images_per_shard"] for j in jobs
+                     if j["scene"] == name)  # fmt: skip
+        assert hours == pytest.approx(images * 0.05 * scene_cost_factor(paper, name) / 3600)
+    # priced by N_sub and profile: a training-like scene at the training cost, more
+    # subhalos dearer, tNFW dearer than NFW at equal N_sub, no subhalos cheapest
+    assert scene_cost_factor(paper, "train") == pytest.approx(1.0)
+    factors = {n: scene_cost_factor(paper, n) for n in ("nfw", "nfw_ref", "tnfw_ref", "null_nosub")}
+    assert factors["null_nosub"] < 1.0 < factors["nfw_ref"] < factors["tnfw_ref"]
+    assert factors["nfw"] < factors["nfw_ref"]
     assert cost.disk_gb_shards == pytest.approx(cost.images * 40_000 / 1e9)
     assert cost.gpu_hours_training == pytest.approx(5e6 * cost.max_epochs / 500 / 3600)
     reduced = campaign_cost(cfg.load(REPO_CONFIG, env=False))
@@ -670,3 +682,18 @@ def test_cli_cost_prints_every_line(capsys):
         "GPU-hours, training",
     ):
         assert line in out
+
+
+def test_a_config_is_validated_once_per_process(monkeypatch):
+    """Validating a config, then its validated result, then that again runs the schema
+    and the cross-key checks once; a changed config is validated anew."""
+    calls = []
+    real = cfg._validate
+    monkeypatch.setattr(cfg, "_VALIDATED", {})
+    monkeypatch.setattr(cfg, "_validate", lambda c, fill: calls.append(1) or real(c, fill))
+    raw = cfg.load(REPO_ROOT / "config" / "tiny.yaml", env=False)
+    once = cfg.validate(raw)
+    assert cfg.validate(cfg.validate(once)) == once and len(calls) == 1
+    changed = copy.deepcopy(raw)
+    changed["seed"] = int(changed.get("seed", 0)) + 1
+    assert cfg.validate(changed)["seed"] == changed["seed"] and len(calls) == 2

@@ -392,8 +392,11 @@ def _cost(args: argparse.Namespace) -> int:
     print(f"images simulated      {cost.images:>12,}")
     print(
         f"CPU-hours, simulation {cost.cpu_hours_simulation:>12,.1f}"
-        f"  ({cost.seconds_per_image * 1e3:.1f} ms/image, {sources['seconds_per_image']})"
+        f"  ({cost.seconds_per_image * 1e3:.1f} ms a training image, "
+        f"{sources['seconds_per_image']}; other scenes priced by their N_sub and profile)"
     )
+    for name, hours in list(cost.cpu_hours_by_scene.items())[:6]:
+        print(f"  {name:<20}{hours:>12,.1f}")
     print(
         f"disk of the shards    {cost.disk_gb_shards:>12,.1f} GB"
         f"  ({cost.bytes_per_image / 1e3:.1f} KB/image, {sources['bytes_per_image']})"

@@ -160,9 +160,19 @@ def validate(config: Mapping[str, Any], *, fill: bool = True) -> dict[str, Any]:
     return _validate(config, fill)
 
 
-@functools.lru_cache(maxsize=64)
+#: Validated configs by (canonical JSON, fill): the config as given and, since
+#: validating a validated config returns it unchanged, the result itself.
+_VALIDATED: dict[tuple[str, bool], dict[str, Any]] = {}
+
+
 def _validated(text: str, fill: bool) -> dict[str, Any]:
-    return _validate(json.loads(text), fill)
+    if (text, fill) not in _VALIDATED:
+        full = _validate(json.loads(text), fill)
+        if len(_VALIDATED) >= 128:
+            _VALIDATED.clear()
+        _VALIDATED[(text, fill)] = full
+        _VALIDATED[(canonical_json(full), fill)] = full
+    return _VALIDATED[(text, fill)]
 
 
 def _validate(config: Mapping[str, Any], fill: bool) -> dict[str, Any]:
