@@ -98,22 +98,16 @@ def calibrate_stack_size(
     return out
 
 
+#: Columns of ``coverage.csv``: the stack size, the number of stacks, the calibration
+#: table's columns (:data:`subslope.stats.calibration.CALIBRATION_COLUMNS`) with the
+#: coverage's distance from its level in standard errors, the level and the verdict.
+_WILSON = calibration.CALIBRATION_COLUMNS.index("wilson_lo")
 COVERAGE_COLUMNS = (
     "n_images",
     "n_stacks",
-    "tau",
-    "tau_exact",
-    "tau_wilks",
-    "tau_calibration",
-    "n_calibration",
-    "n_heldout",
-    "coverage",
-    "coverage_err",
+    *calibration.CALIBRATION_COLUMNS[:_WILSON],
     "coverage_sigma",
-    "wilson_lo",
-    "wilson_hi",
-    "coverage_wilks",
-    "coverage_wilks_err",
+    *calibration.CALIBRATION_COLUMNS[_WILSON:],
     "level",
     "overconfident",
 )

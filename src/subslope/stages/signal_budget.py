@@ -36,6 +36,7 @@ from subslope.io.atomic import write_csv
 __all__ = [
     "BUDGET_COLUMNS",
     "budget_image",
+    "image_budget",
     "shifted",
     "smooth_directions",
     "step_of",
@@ -185,16 +186,22 @@ def budget_image(inp: dict[str, Any], mask_factor: float, baseline_subhalos=None
     )
 
 
-def _image_budget(
-    inp: dict[str, Any], mask_factor: float, iterations: int, baseline_subhalos=None
+def image_budget(
+    inp: dict[str, Any],
+    mask_factor: float,
+    iterations: int,
+    baseline_subhalos=None,
+    *,
+    rtol: float = 1e-3,
 ) -> tuple[float, float, float]:
     """``(dchi2_fixed, dchi2_linear, dchi2_refit)`` of the one image of the stored inputs
     ``inp``: the image with its subhalos fitted by the subhalo-free model, every smooth
     direction free (offsets in units of :func:`step_of`, so a unit difference step keeps
     a float32 render above its rounding), by :func:`subslope.stats.signal.gauss_newton_refit`
-    of at most ``iterations`` iterations. With ``baseline_subhalos`` the model is the
-    image with those subhalos instead, their perturbation held fixed while the smooth
-    parameters move (to first order in the small refit steps)."""
+    of at most ``iterations`` iterations (``rtol``: its early stop; 0 runs them all).
+    With ``baseline_subhalos`` the model is the image with those subhalos instead, their
+    perturbation held fixed while the smooth parameters move (to first order in the
+    small refit steps)."""
     from subslope.stats.signal import delta_chi2, gauss_newton_refit, whiten
 
     b = budget_image(inp, mask_factor, baseline_subhalos)
@@ -207,7 +214,7 @@ def _image_budget(
         return whiten(target - model, b.sigma, b.w)[b.mask]
 
     fixed = delta_chi2(b.diff, b.sigma, b.mask, b.w)
-    linear, full, _ = gauss_newton_refit(residual, len(names), iterations=iterations)
+    linear, full, _ = gauss_newton_refit(residual, len(names), iterations=iterations, rtol=rtol)
     return fixed, linear, full
 
 
@@ -235,7 +242,7 @@ def budget_rows(
             macro = {k: np.asarray(v[i : i + 1]) for k, v in shard.params.items()}
             if has_subhalos and int(macro["n_sub"][0]) > 0:
                 inputs = stored_inputs(shard, [i], cosmos=cosmos)
-                fixed, linear, refit = _image_budget(inputs, mask_factor, iterations)
+                fixed, linear, refit = image_budget(inputs, mask_factor, iterations)
             else:
                 fixed = linear = refit = 0.0
             rows.append(
@@ -306,7 +313,7 @@ def contrast_rows(
             if int(macro["n_sub"][0]) > 0:
                 low = stored_inputs(lo, [i], cosmos=cosmos)
                 high = stored_inputs(hi, [i], cosmos=cosmos)
-                fixed, linear, refit = _image_budget(
+                fixed, linear, refit = image_budget(
                     high, mask_factor, iterations, baseline_subhalos=low["subhalos"]
                 )
             else:

@@ -17,11 +17,12 @@ mask, rather than inverting the masked covariance, is the one approximation.
 A real analysis also refits the smooth model. To first order a change ``δp`` of its
 parameters adds ``J δp`` to the image (``J``: derivatives of the subhalo-free image), so
 the part of ``d`` that no smooth change can absorb is the residual of the weighted
-least-squares fit of ``d`` by the columns of ``J`` (:func:`refit_delta_chi2`); its Δχ² is
-at most the fixed-model one. A subhalo population can look like a finite change of the
-lens, which the first-order fit does not reach; :func:`gauss_newton_refit` iterates the
-fit to the nonlinear minimum. With the source morphology held fixed both are upper
-bounds of what an analysis with a free source could detect.
+least-squares fit of ``d`` by the columns of ``J``; its Δχ² is at most the fixed-model
+one. A subhalo population can look like a finite change of the lens, which that
+first-order fit does not reach: :func:`gauss_newton_refit` returns both, the first
+step's (linearised) value and the iterated fit's nonlinear minimum. With the source
+morphology held fixed both are upper bounds of what an analysis with a free source
+could detect.
 
 Δχ² ≈ 1 is invisible, ≳ 25 an individual detection for a perfect model; over independent
 images Δχ² adds.
@@ -31,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["delta_chi2", "gauss_newton_refit", "refit_delta_chi2", "whiten"]
+__all__ = ["delta_chi2", "gauss_newton_refit", "whiten"]
 
 
 def _axis_transfer(n: int, w: float) -> np.ndarray:
@@ -66,23 +67,6 @@ def delta_chi2(diff, sigma, mask, w: float = 0.0) -> float:
     return float(np.sum(whiten(diff, sigma, w)[mask] ** 2))
 
 
-def refit_delta_chi2(diff, jacobian, sigma, mask, w: float = 0.0) -> float:
-    """Δχ² of ``diff`` ``(H, W)`` left after the weighted least-squares fit of the smooth
-    model's derivatives ``jacobian`` ``(P, H, W)`` (one image per parameter): the signal no
-    small change of the smooth model can absorb. Degenerate columns (a parameter the image
-    does not depend on) are handled by the minimum-norm solution."""
-    mask = np.asarray(mask, dtype=bool)
-    b = whiten(diff, sigma, w)[mask]
-    jac = np.asarray(jacobian, dtype=np.float64)
-    if jac.shape[0] == 0:
-        return float(np.sum(b**2))
-    a = np.stack([whiten(col, sigma, w)[mask] for col in jac], axis=1)
-    scale = np.linalg.norm(a, axis=0)
-    scale[scale == 0] = 1.0
-    coef, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
-    return float(np.sum((b - (a / scale) @ coef) ** 2))
-
-
 def gauss_newton_refit(
     residual, n_params: int, *, iterations: int = 6, halvings: int = 8, rtol: float = 1e-3
 ) -> tuple[float, float, int]:
@@ -95,7 +79,8 @@ def gauss_newton_refit(
     halves ``δ`` (at most ``halvings`` times) until χ² = |r|² falls; it stops after
     ``iterations`` iterations, when no halving lowers χ², or when an iteration lowers it
     by less than ``rtol`` of itself. Returns ``(linearised, full, iterations done)``: the
-    χ² the first step predicts (:func:`refit_delta_chi2`'s linearised refit, at u = 0)
+    χ² the first step predicts (the linearised refit: the least-squares residual of
+    ``r(0)`` by the columns of the Jacobian at u = 0)
     and the χ² actually reached, which a nonlinear model can leave far below the
     linearised value (never above the fixed-model χ² |r(0)|²)."""
     if iterations < 1:
