@@ -2,42 +2,25 @@
 estimator."""
 
 import logging
-import os
 
-import torch
-
-from subslope.devices import pick_device
-from subslope.io.resources import verify_files
 from subslope.logs import log_to_file
-from subslope.stages.simulate import runnable_config
-from subslope.stages.train import run_training
+from subslope.stages.train import train_job
 
 log_to_file(snakemake.log[0], outputs=snakemake.output, params=snakemake.params)
 try:
-    pick_device(
-        snakemake.params.device, key="training.device"
-    )  # a device this machine lacks fails here
-    torch.set_num_threads(snakemake.threads)
-    logging.info(
-        "checkpoints in %s (kept across reruns; a restarted job resumes)", snakemake.params.ckpt_dir
-    )
-    stream = snakemake.params.stream
-    if stream is not None:  # training.data: stream
-        verify_files(list(snakemake.input.stream_data))
-        stream = runnable_config(stream, snakemake.config)
-    summary = run_training(
-        snakemake.params.training,
-        list(snakemake.input.train),
-        list(snakemake.input.val),
-        snakemake.input.whitening,
-        os.path.dirname(snakemake.output.model),
-        snakemake.params.ckpt_dir,
+    train_job(
+        snakemake.config,
+        training=snakemake.params.training,
+        train_shards=snakemake.input.train,
+        val_shards=snakemake.input.val,
+        whitening=snakemake.input.whitening,
+        model_path=snakemake.output.model,
+        ckpt_dir=snakemake.params.ckpt_dir,
         device=snakemake.params.device,
-        stream=stream,
-        # not a param: the number of processes does not change the training
-        ranks=snakemake.config["training"]["ranks"],
+        stream=snakemake.params.stream,
+        stream_data=snakemake.input.stream_data,
+        threads=snakemake.threads,
     )
-    logging.info("training done: %s", summary)
 except Exception:
     logging.exception("train_estimator failed")
     raise

@@ -11,6 +11,8 @@ of every image and its ln r̂ averaged (``symmetrize``).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -53,43 +55,27 @@ def log_ratio_profiles(
 ) -> np.ndarray:
     """``ln r̂(x_b|γ_g)`` of every image on the grid: ``(B, G)`` float64.
 
-    Parameters
-    ----------
-    model:
-        A :class:`subslope.nre.RatioEstimator` (from :func:`subslope.nre.load_estimator`).
-        It is moved to ``device`` and put in eval mode.
-    images:
-        ``(B, H, W)`` raw images in e⁻/s per pixel; anything sliceable along the first
-        axis (numpy array, h5py dataset), read ``batch_size`` images at a time.
-    theta_e, lens_x, lens_y:
-        ``(B,)`` (or scalars): Einstein radius and lens centre in arcsec, for the mask.
-    whitening:
-        ``(mean, std)``, a ``{"mean", "std"}`` mapping or a JSON path
-        (:func:`subslope.nre.read_whitening`); for a checkpoint, ``metadata["whitening"]``.
-    gammas:
-        1-D grid (:func:`subslope.stats.intervals.gamma_grid`).
-    batch_size:
-        Images per forward pass (the trunk runs once per image, the head on B × G pairs).
-    device:
-        ``None``: CUDA when available, else CPU (decided at call time).
-    pixel_scale, mask_factor:
-        Pre-processing; pass ``metadata["preprocess"]`` values of the checkpoint.
-    inputs, light:
-        The input transform (``None``: the pixels as given) and, where it subtracts the
-        lens light, the fitted model of every image (sliced like ``images``).
-    symmetrize:
-        Average ln r̂ over the eight symmetric views of every pre-processed image (see
-        :func:`_log_ratio`; eight trunk passes an image).
+    ``model``: a :class:`subslope.nre.RatioEstimator` (:func:`subslope.nre.load_estimator`),
+    moved to ``device`` (None: CUDA when available, else CPU, at call time) in eval mode.
+    ``images``: ``(B, H, W)`` raw images (e⁻/s per pixel), anything sliceable along the
+    first axis (numpy array, h5py dataset), read ``batch_size`` at a time (the trunk runs
+    once per image, the head on B × G pairs). ``theta_e, lens_x, lens_y``: ``(B,)`` or
+    scalars, arcsec, for the mask. ``whitening``: ``(mean, std)``, a mapping or a JSON
+    path (:func:`subslope.nre.read_whitening`; a checkpoint's ``metadata["whitening"]``).
+    ``gammas``: the 1-D grid (:func:`subslope.stats.intervals.gamma_grid`).
+    ``pixel_scale, mask_factor``: pre-processing, the checkpoint's
+    ``metadata["preprocess"]``. ``inputs, light``: the input transform (None: the pixels
+    as given) and, where it subtracts the lens light, every image's fitted model (sliced
+    like ``images``). ``symmetrize``: average ln r̂ over the eight symmetric views of
+    every pre-processed image (:func:`_log_ratio`; eight trunk passes an image).
     """
     g = check_grid(gammas)
     inputs = inputs or InputTransform()
     _check_call(inputs, light, images, batch_size)
-    mean, std = read_whitening(whitening)
     n = len(images)
-    te, cx, cy = (
-        np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy()
-        for v in (theta_e, lens_x, lens_y)
-    )
+    geometry = [np.full(n, v, dtype=np.float64) for v in (theta_e, lens_x, lens_y)]
+    prep = dict(inputs=inputs, whitening=read_whitening(whitening), pixel_scale=pixel_scale)
+    prepare = functools.partial(_prepared, geometry=geometry, mask_factor=mask_factor, **prep)
     dev = pick_device(device, key="inference.device")
     model = model.to(dev).eval()
     dtype = next(model.parameters()).dtype
@@ -97,21 +83,34 @@ def log_ratio_profiles(
     out = np.empty((n, g.size), dtype=np.float64)
     with torch.inference_mode():
         for s in range(0, n, int(batch_size)):
-            e = min(s + int(batch_size), n)
-            x = np.asarray(images[s:e], dtype=np.float32)
-            if x.ndim != 3:
-                raise ValueError(
-                    f"images must have shape (B, H, W), got a batch of shape {x.shape}"
-                )
-            x = preprocess(
-                inputs.apply(x, light[s:e] if inputs.needs_light else None),
-                te[s:e], cx[s:e], cy[s:e], mean, std,
-                pixel_scale=pixel_scale, mask_factor=mask_factor,
-            )  # fmt: skip
-            out[s:e] = _log_ratio(
+            part = slice(s, min(s + int(batch_size), n))
+            x = prepare(images[part], light[part] if inputs.needs_light else None, part)
+            out[part] = _log_ratio(
                 model, torch.as_tensor(x, dtype=dtype, device=dev), grid_t, symmetrize
             )
     return out
+
+
+def _prepared(
+    images, light, part: slice, *, geometry, inputs, whitening, pixel_scale, mask_factor
+) -> np.ndarray:
+    """One batch of raw images ``(b, H, W)`` (the slice ``part`` of the set) as the
+    network sees them: the input transform (``light``: the fitted lens light, where it
+    is subtracted), whitened and masked (:func:`subslope.nre.preprocess.preprocess`;
+    ``geometry``: θ_E, lens x and y of every image of the set)."""
+    x = np.asarray(images, dtype=np.float32)
+    if x.ndim != 3:
+        raise ValueError(f"images must have shape (B, H, W), got a batch of shape {x.shape}")
+    theta_e, lens_x, lens_y = (v[part] for v in geometry)
+    return preprocess(
+        inputs.apply(x, light),
+        theta_e,
+        lens_x,
+        lens_y,
+        *whitening,
+        pixel_scale=pixel_scale,
+        mask_factor=mask_factor,
+    )
 
 
 def _log_ratio(model, x, grid, symmetrize: bool) -> np.ndarray:

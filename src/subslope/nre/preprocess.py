@@ -138,22 +138,28 @@ def preprocess(
     if mask_factor is not None:
         if not mask_factor > 0:
             raise ValueError(f"mask_factor must be > 0 or None, got {mask_factor!r}")
-        h, w = x.shape[-2:]
-        # Geometry in float64: the mask must not depend on the image dtype.
-        ax_x = (torch.arange(w, dtype=torch.float64, device=x.device) - (w - 1) / 2) * pixel_scale
-        ax_y = (torch.arange(h, dtype=torch.float64, device=x.device) - (h - 1) / 2) * pixel_scale
-        lead = x.ndim - 2
-
-        def geom(v):
-            # Left-align per-image parameters with the leading axes of the images, so
-            # (B,) parameters pair with (B, H, W) and with (B, 1, H, W) images alike.
-            t = _as_tensor(v, dtype=torch.float64, device=x.device)
-            if 0 < t.ndim < lead:
-                t = t.reshape(t.shape + (1,) * (lead - t.ndim))
-            return t[..., None, None]
-
-        te, cx, cy = geom(theta_e), geom(lens_x), geom(lens_y)
-        r2 = (ax_x - cx) ** 2 + (ax_y[:, None] - cy) ** 2
-        keep = r2 <= (mask_factor * te) ** 2
+        keep = _aperture(x, theta_e, lens_x, lens_y, pixel_scale, mask_factor)
         out = torch.where(keep, out, torch.zeros((), dtype=out.dtype, device=out.device))
     return out.cpu().numpy() if is_numpy else out
+
+
+def _aperture(x: torch.Tensor, theta_e, lens_x, lens_y, pixel_scale: float, mask_factor: float):
+    """The pixels of images ``x`` ``(..., H, W)`` within ``mask_factor · θ_E`` of the lens
+    centre (bool, broadcasting against ``x``); geometry in float64, so that the mask
+    does not depend on the image dtype."""
+    h, w = x.shape[-2:]
+    ax_x = (torch.arange(w, dtype=torch.float64, device=x.device) - (w - 1) / 2) * pixel_scale
+    ax_y = (torch.arange(h, dtype=torch.float64, device=x.device) - (h - 1) / 2) * pixel_scale
+    lead = x.ndim - 2
+
+    def geom(v):
+        # Left-align per-image parameters with the leading axes of the images, so
+        # (B,) parameters pair with (B, H, W) and with (B, 1, H, W) images alike.
+        t = _as_tensor(v, dtype=torch.float64, device=x.device)
+        if 0 < t.ndim < lead:
+            t = t.reshape(t.shape + (1,) * (lead - t.ndim))
+        return t[..., None, None]
+
+    te, cx, cy = geom(theta_e), geom(lens_x), geom(lens_y)
+    r2 = (ax_x - cx) ** 2 + (ax_y[:, None] - cy) ** 2
+    return r2 <= (mask_factor * te) ** 2

@@ -30,15 +30,16 @@ its hash, and the training log; :func:`load_estimator` rebuilds the model from i
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import os
 import random
 import sys
 import time
-from collections.abc import Mapping, Sequence
-from contextlib import nullcontext
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager, nullcontext
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +70,7 @@ from .distributed import (
     share_loss,
     sync_batch_norm,
 )
+from .inputs import InputTransform
 from .loss import NRELoss, negative_indices
 from .models import RatioEstimator, build_model
 from .preprocess import read_inputs, read_whitening
@@ -81,7 +83,8 @@ __all__ = [
     "config_hash",
     "train",
     "load_estimator",
-    "evaluate",
+    "validation_loss",
+    "TrainingState",
 ]
 
 
@@ -97,7 +100,7 @@ def _amp_dtype(cfg, device: torch.device) -> torch.dtype | None:
 
 
 @torch.no_grad()
-def evaluate(
+def validation_loss(
     model: RatioEstimator,
     dataset: ShardBatches,
     loss_fn: NRELoss,
@@ -149,7 +152,7 @@ def train(
         fills missing keys).
     train_shards: HDF5 shard paths, or a :class:`subslope.nre.stream.StreamBatches` of
         images simulated while training (``training.data: stream``; its batch size must be
-        ``batch_size``).
+        ``batch_size``); a stream is not changed (the run trains on a copy).
     val_shards: HDF5 shard paths.
     whitening: ``(mean, std)``, a mapping or the whitening JSON path.
     out_dir: receives ``model.pt`` and ``training_log.csv``.
@@ -160,18 +163,33 @@ def train(
     (path of ``model.pt`` or None), ``epochs``, ``step``, ``best_val_loss``, ``stop_reason``.
     """
     cfg = resolve_config(config)
-    chash = config_hash(cfg)
     device = pick_device(device, key="training.device")
     ranks = setup_ranks(device)
     if ranks.size > 1:
         device = rank_device(cfg, device, ranks)
-    inputs = read_inputs(whitening, expect=cfg["inputs"])
-    whitening = read_whitening(whitening)
-    out_dir, ckpt_dir = Path(out_dir), Path(ckpt_dir)
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
-    last_path, best_path = ckpt_dir / "last.pt", ckpt_dir / "best.pt"
-    amp_dtype = _amp_dtype(cfg, device)
+    setup = _Setup(
+        cfg=cfg,
+        chash=config_hash(cfg),
+        device=device,
+        ranks=ranks,
+        amp_dtype=_amp_dtype(cfg, device),
+        whitening=read_whitening(whitening),
+        inputs=read_inputs(whitening, expect=cfg["inputs"]),
+        out_dir=Path(out_dir),
+        ckpt_dir=Path(ckpt_dir),
+    )
+    setup.ckpt_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        with _determinism(cfg, device):
+            return _train(setup, train_shards, val_shards)
+    finally:
+        close_ranks(ranks)
 
+
+@contextmanager
+def _determinism(cfg: Mapping[str, Any], device: torch.device) -> Iterator[None]:
+    """torch's deterministic algorithms (``deterministic: true``) or cuDNN's autotuner on
+    CUDA, for the duration of the run; the previous settings restored after it."""
     prev_det = torch.are_deterministic_algorithms_enabled()
     prev_bench = torch.backends.cudnn.benchmark
     if cfg["deterministic"]:
@@ -181,57 +199,105 @@ def train(
     elif device.type == "cuda":
         torch.backends.cudnn.benchmark = True
     try:
-        return _train(
-            cfg,
-            chash,
-            train_shards,
-            val_shards,
-            (whitening, inputs),
-            out_dir,
-            ckpt_dir,
-            (last_path, best_path),
-            (device, ranks),
-            amp_dtype,
-        )
+        yield
     finally:
         torch.use_deterministic_algorithms(prev_det)
         torch.backends.cudnn.benchmark = prev_bench
-        close_ranks(ranks)
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What a training run is given: its config, devices, data transforms and folders."""
+
+    cfg: dict[str, Any]
+    chash: str
+    device: torch.device
+    ranks: Ranks
+    amp_dtype: torch.dtype | None
+    whitening: tuple[float, float]
+    inputs: InputTransform
+    out_dir: Path
+    ckpt_dir: Path
+
+    @property
+    def last_path(self) -> Path:
+        return self.ckpt_dir / "last.pt"
+
+    @property
+    def best_path(self) -> Path:
+        return self.ckpt_dir / "best.pt"
+
+
+@dataclass
+class TrainingState:
+    """Where a training run stands; saved whole in ``last.pt`` (as a mapping)."""
+
+    epoch: int = 0
+    batch_in_epoch: int = 0
+    step: int = 0
+    best_val: float = math.inf
+    bad_epochs: int = 0
+    history: list[dict[str, Any]] = field(default_factory=list)
+    loss_sum: float = 0.0
+    loss_count: int = 0
+    train_seconds: float = 0.0
+    finished: bool = False
+    stop_reason: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, saved: Mapping[str, Any]) -> TrainingState:
+        """The state of a checkpoint's mapping (keys it lacks keep their start values)."""
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in saved.items() if k in known})
+
+    def stop(self, reason: str) -> None:
+        self.finished, self.stop_reason = True, reason
 
 
 @dataclass
 class _Run:
-    """Everything one training run carries between its steps."""
+    """The model, its optimiser and losses, and the state of one training run."""
 
-    cfg: dict[str, Any]
-    chash: str
+    setup: _Setup
     model: RatioEstimator
     opt: Any
     sched: Any
     scaler: Any
     loss_fn: NRELoss
     val_loss_fn: NRELoss
-    device: torch.device
-    amp_dtype: torch.dtype | None
-    last_path: Path
-    best_path: Path
-    ranks: Ranks = field(default_factory=Ranks)
-    forward: Any = None  # the model the loss calls (DistributedDataParallel with ranks)
-    state: dict[str, Any] = field(
-        default_factory=lambda: {
-            "epoch": 0,
-            "batch_in_epoch": 0,
-            "step": 0,
-            "best_val": math.inf,
-            "bad_epochs": 0,
-            "history": [],
-            "loss_sum": 0.0,
-            "loss_count": 0,
-            "train_seconds": 0.0,
-            "finished": False,
-            "stop_reason": None,
-        }
-    )
+    forward: Any  # the model the loss calls (DistributedDataParallel with ranks)
+    state: TrainingState = field(default_factory=TrainingState)
+
+    @property
+    def cfg(self) -> dict[str, Any]:
+        return self.setup.cfg
+
+    @property
+    def chash(self) -> str:
+        return self.setup.chash
+
+    @property
+    def device(self) -> torch.device:
+        return self.setup.device
+
+    @property
+    def ranks(self) -> Ranks:
+        return self.setup.ranks
+
+    @property
+    def amp_dtype(self) -> torch.dtype | None:
+        return self.setup.amp_dtype
+
+    @property
+    def last_path(self) -> Path:
+        return self.setup.last_path
+
+    @property
+    def best_path(self) -> Path:
+        return self.setup.best_path
 
     def checkpoint(self) -> None:
         """Rank 0 writes ``last.pt``; every rank waits for it."""
@@ -249,16 +315,14 @@ class _Run:
                 "scheduler": self.sched.state_dict(),
                 "scaler": self.scaler.state_dict() if self.scaler is not None else None,
                 "rng": rng_state(),
-                "state": self.state,
+                "state": self.state.as_dict(),
             },
             self.last_path,
         )
 
 
-def _start(cfg, chash, train_shards, placement, amp_dtype, paths) -> _Run:
-    """Seed every generator, build the model, optimiser, scheduler and losses (with
-    several ranks: batch norm over the whole batch, DistributedDataParallel)."""
-    device, ranks = placement
+def _label_norm(train_shards) -> tuple[float, float]:
+    """Mean and standard deviation of the training labels γ (the model's γ scaling)."""
     labels = (
         train_shards.labels()
         if isinstance(train_shards, StreamBatches)
@@ -269,13 +333,21 @@ def _start(cfg, chash, train_shards, placement, amp_dtype, paths) -> _Run:
         raise ValueError(
             f"training labels params/gamma_sub have zero spread (all {gamma_mean}); need varied γ"
         )
+    return gamma_mean, gamma_std
+
+
+def _start(setup: _Setup, train_shards) -> _Run:
+    """Seed every generator, build the model, optimiser, scheduler and losses (with
+    several ranks: batch norm over the whole batch, DistributedDataParallel)."""
+    cfg, device = setup.cfg, setup.device
+    gamma_mean, gamma_std = _label_norm(train_shards)
     seed = int(cfg["seed"])
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
     random.seed(seed)
     model = build_model(cfg["arch"], gamma_mean=gamma_mean, gamma_std=gamma_std).to(device)
     forward = model
-    if ranks.size > 1:
+    if setup.ranks.size > 1:
         model = sync_batch_norm(model, device)
         forward = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
@@ -290,33 +362,26 @@ def _start(cfg, chash, train_shards, placement, amp_dtype, paths) -> _Run:
         threshold=cfg["min_delta"],
         threshold_mode="abs",
     )
-    scaler = torch.amp.GradScaler("cuda") if amp_dtype == torch.float16 else None
-    loss_fn = NRELoss(model, lmbda=cfg["bnre_lambda"], negatives=cfg["negatives"])
-    val_loss_fn = NRELoss(
-        model, lmbda=cfg["bnre_lambda"], negatives="roll"
-    )  # a fixed function of the weights
+    scaler = torch.amp.GradScaler("cuda") if setup.amp_dtype == torch.float16 else None
     return _Run(
-        cfg,
-        chash,
+        setup,
         model,
         opt,
         sched,
         scaler,
-        loss_fn,
-        val_loss_fn,
-        device,
-        amp_dtype,
-        *paths,
-        ranks,
+        NRELoss(model, lmbda=cfg["bnre_lambda"], negatives=cfg["negatives"]),
+        # validation: a fixed function of the weights
+        NRELoss(model, lmbda=cfg["bnre_lambda"], negatives="roll"),
         forward,
     )
 
 
-def _resume(run: _Run, ckpt_dir) -> None:
+def _resume(run: _Run) -> None:
     """Continue from ``last.pt`` when it exists: weights, optimiser, scheduler, scaler,
     random states and the loop position."""
     if not run.last_path.exists():
         return
+    ckpt_dir = run.setup.ckpt_dir
     ck = torch_load(
         run.last_path,
         run.device,
@@ -338,15 +403,15 @@ def _resume(run: _Run, ckpt_dir) -> None:
     if run.scaler is not None and ck.get("scaler"):
         run.scaler.load_state_dict(ck["scaler"])
     set_rng_state(ck["rng"])
-    run.state.update(ck["state"])
-    if run.state["finished"]:
-        run.state["stop_reason"] = run.state.get("stop_reason") or "finished"
+    run.state = TrainingState.from_dict(ck["state"])
+    if run.state.finished:
+        run.state.stop_reason = run.state.stop_reason or "finished"
     log.info(
         "resumed from %s at epoch %d, batch %d, step %d",
         run.last_path,
-        run.state["epoch"],
-        run.state["batch_in_epoch"],
-        run.state["step"],
+        run.state.epoch,
+        run.state.batch_in_epoch,
+        run.state.step,
     )
 
 
@@ -356,7 +421,7 @@ def _step(run: _Run, batch, pin: bool) -> int:
     g = batch["gamma"].to(run.device, non_blocking=pin)
     if run.cfg["augment"] == "dihedral":  # the global batch's draw, this rank's share
         n_all = x.shape[0] * run.ranks.size
-        gen = step_generator(run.cfg["seed"], run.state["step"])
+        gen = step_generator(run.cfg["seed"], run.state.step)
         x = random_dihedral(x, gen, start=run.ranks.share(n_all)[0], total=n_all)
     ctx = (
         torch.autocast(run.device.type, dtype=run.amp_dtype)
@@ -393,15 +458,13 @@ def _apply(run: _Run, loss, value, n: int) -> int:
         loss.backward()
         run.opt.step()
     lv = float(value.detach()) if value is not None else global_mean(loss, run.ranks)
-    if not math.isfinite(lv):
-        raise FloatingPointError(
-            f"training loss is {lv} at epoch {run.state['epoch']}, step {run.state['step']}"
-        )
     state = run.state
-    state["loss_sum"] += lv * n
-    state["loss_count"] += n
-    state["step"] += 1
-    state["batch_in_epoch"] += 1
+    if not math.isfinite(lv):
+        raise FloatingPointError(f"training loss is {lv} at epoch {state.epoch}, step {state.step}")
+    state.loss_sum += lv * n
+    state.loss_count += n
+    state.step += 1
+    state.batch_in_epoch += 1
     return n
 
 
@@ -409,17 +472,16 @@ def _train_epoch(run: _Run, train_ds, max_steps) -> bool:
     """The rest of the current epoch; True when ``max_steps`` stopped it (checkpointed)."""
     cfg, state = run.cfg, run.state
     pin = run.device.type == "cuda"
-    epoch = state["epoch"]
-    train_ds.set_epoch(epoch)
+    train_ds.set_epoch(state.epoch)
     loader = make_loader(
-        train_ds, start=state["batch_in_epoch"], num_workers=cfg["num_workers"], pin_memory=pin
+        train_ds, start=state.batch_in_epoch, num_workers=cfg["num_workers"], pin_memory=pin
     )
     t0 = time.perf_counter()
     bar = tqdm(
         loader,
         total=len(train_ds),
-        initial=state["batch_in_epoch"],
-        desc=f"epoch {epoch}",
+        initial=state.batch_in_epoch,
+        desc=f"epoch {state.epoch}",
         disable=not cfg["progress"],
         file=sys.stderr,
         dynamic_ncols=True,
@@ -427,11 +489,11 @@ def _train_epoch(run: _Run, train_ds, max_steps) -> bool:
     )
     for batch in bar:
         _step(run, batch, pin)
-        if state["step"] % 20 == 0:
-            bar.set_postfix(loss=f"{state['loss_sum'] / state['loss_count']:.4f}", refresh=False)
-        stop = max_steps is not None and state["step"] >= max_steps
-        if stop or (cfg["checkpoint_every"] and state["step"] % cfg["checkpoint_every"] == 0):
-            state["train_seconds"] += time.perf_counter() - t0
+        if state.step % 20 == 0:
+            bar.set_postfix(loss=f"{state.loss_sum / state.loss_count:.4f}", refresh=False)
+        stop = max_steps is not None and state.step >= max_steps
+        if stop or (cfg["checkpoint_every"] and state.step % cfg["checkpoint_every"] == 0):
+            state.train_seconds += time.perf_counter() - t0
             t0 = time.perf_counter()
             run.checkpoint()
         if stop:
@@ -439,146 +501,154 @@ def _train_epoch(run: _Run, train_ds, max_steps) -> bool:
             log.info(
                 "stopped at max_steps=%d (epoch %d, batch %d); call train() again to resume",
                 max_steps,
-                epoch,
-                state["batch_in_epoch"],
+                state.epoch,
+                state.batch_in_epoch,
             )
             return True
     bar.close()
-    state["train_seconds"] += time.perf_counter() - t0
+    state.train_seconds += time.perf_counter() - t0
     return False
 
 
-def _end_epoch(run: _Run, val_ds, out_dir: Path) -> None:
-    """Validate, step the scheduler, keep the best weights, decide on stopping and
-    checkpoint."""
-    cfg, state = run.cfg, run.state
-    epoch = state["epoch"]
+def _validate(run: _Run, val_ds) -> dict[str, Any]:
+    """The validation loss of the epoch that ends, the scheduler stepped on it; the
+    epoch's row of the training log."""
+    state = run.state
     tv = time.perf_counter()
-    val = evaluate(
+    val = validation_loss(
         run.model,
         val_ds,
         run.val_loss_fn,
         run.device,
-        num_workers=cfg["num_workers"],
+        num_workers=run.cfg["num_workers"],
         amp_dtype=run.amp_dtype,
     )
     val_seconds = time.perf_counter() - tv
     lr = run.opt.param_groups[0]["lr"]
     run.sched.step(val)
     row = {
-        "epoch": epoch,
-        "train_loss": state["loss_sum"] / max(state["loss_count"], 1),
+        "epoch": state.epoch,
+        "train_loss": state.loss_sum / max(state.loss_count, 1),
         "val_loss": val,
         "lr": lr,
-        "seconds": state["train_seconds"] + val_seconds,
-        "images_per_s": state["loss_count"] / max(state["train_seconds"], 1e-9),
+        "seconds": state.train_seconds + val_seconds,
+        "images_per_s": state.loss_count / max(state.train_seconds, 1e-9),
     }
-    state["history"].append(row)
     log.info(
         "epoch %d: train %.5f val %.5f lr %.2e (%.1f s, %.0f img/s)",
-        epoch,
+        state.epoch,
         row["train_loss"],
         val,
         lr,
         row["seconds"],
         row["images_per_s"],
     )
-    best = {"model": run.model.state_dict(), "epoch": epoch, "val_loss": val}
-    if val < state["best_val"] - cfg["min_delta"]:
-        state["best_val"], state["bad_epochs"] = val, 0
-        if run.ranks.main:
-            atomic_save(best, run.best_path)
+    return row
+
+
+def _keep_best(run: _Run, val: float) -> None:
+    """Early-stopping bookkeeping; the weights of a validation loss below the best so
+    far are saved to ``best.pt`` (a gain under ``min_delta`` still counts as stagnant)."""
+    state = run.state
+    better = val < state.best_val
+    if val < state.best_val - run.cfg["min_delta"]:
+        state.bad_epochs = 0
     else:
-        state["bad_epochs"] += 1
-        if val < state["best_val"]:  # small gain: keep the better weights, still count as stagnant
-            state["best_val"] = val
-            if run.ranks.main:
-                atomic_save(best, run.best_path)
-    state.update(epoch=epoch + 1, batch_in_epoch=0, loss_sum=0.0, loss_count=0, train_seconds=0.0)
-    if state["bad_epochs"] >= cfg["early_stop_patience"]:
-        state["finished"], state["stop_reason"] = True, "early_stop"
-    elif state["epoch"] >= cfg["max_epochs"]:
-        state["finished"], state["stop_reason"] = True, "max_epochs"
+        state.bad_epochs += 1
+    if better:
+        state.best_val = val
+        if run.ranks.main:
+            best = {"model": run.model.state_dict(), "epoch": state.epoch, "val_loss": val}
+            atomic_save(best, run.best_path)
+
+
+def _end_epoch(run: _Run, val_ds) -> None:
+    """Validate, step the scheduler, keep the best weights, decide on stopping and
+    checkpoint."""
+    cfg, state = run.cfg, run.state
+    row = _validate(run, val_ds)
+    state.history.append(row)
+    _keep_best(run, row["val_loss"])
+    state.epoch += 1
+    state.batch_in_epoch, state.loss_sum, state.loss_count, state.train_seconds = 0, 0.0, 0, 0.0
+    if state.bad_epochs >= cfg["early_stop_patience"]:
+        state.stop("early_stop")
+    elif state.epoch >= cfg["max_epochs"]:
+        state.stop("max_epochs")
     run.checkpoint()
     if run.ranks.main:
-        write_log(state["history"], out_dir / "training_log.csv")
+        write_log(state.history, run.setup.out_dir / "training_log.csv")
 
 
-def _train(
-    cfg,
-    chash,
-    train_shards,
-    val_shards,
-    prep,
-    out_dir,
-    ckpt_dir,
-    paths,
-    placement,
-    amp_dtype,
-):
-    whitening, inputs = prep
-    run = _start(cfg, chash, train_shards, placement, amp_dtype, paths)
-    _resume(run, ckpt_dir)
+def _train(setup: _Setup, train_shards, val_shards) -> dict[str, Any]:
+    """The loop: epochs until early stopping or ``max_epochs`` (or ``max_steps``), then
+    ``model.pt`` from the best weights."""
+    cfg = setup.cfg
+    run = _start(setup, train_shards)
+    _resume(run)
     state = run.state
-    train_ds = _training_batches(cfg, train_shards, whitening, inputs)
-    if run.ranks.size > 1:
-        train_ds.part = (run.ranks.rank, run.ranks.size)
+    train_ds = _training_batches(setup, train_shards)
     val_ds = ShardBatches(
         val_shards,
         cfg["val_batch_size"] or cfg["batch_size"],
-        whitening,
+        setup.whitening,
         shuffle=False,
         pixel_scale=cfg["pixel_scale"],
         mask_factor=cfg["mask_factor"],
-        inputs=inputs,
+        inputs=setup.inputs,
     )
-    if len(train_ds) == 0:
-        raise ValueError(
-            f"training shards hold {train_ds.n_images} images, fewer than one batch of "
-            f"{cfg['batch_size']}"
-        )
     max_steps = cfg["max_steps"]
-    if max_steps is not None and state["step"] >= max_steps and not state["finished"]:
+    if max_steps is not None and state.step >= max_steps and not state.finished:
         return summary(state, None, finished=False)
     run.model.train()
-    while not state["finished"]:
-        if state["epoch"] >= cfg["max_epochs"]:
-            state["finished"], state["stop_reason"] = True, "max_epochs"
+    while not state.finished:
+        if state.epoch >= cfg["max_epochs"]:
+            state.stop("max_epochs")
             break
         if _train_epoch(run, train_ds, max_steps):
             return summary(state, None, finished=False)
-        _end_epoch(run, val_ds, out_dir)
+        _end_epoch(run, val_ds)
     run.checkpoint()
-    model_path = out_dir / "model.pt"
+    model_path = setup.out_dir / "model.pt"
     if run.ranks.main:
-        write_model(run, whitening, inputs, out_dir)
-        write_log(state["history"], out_dir / "training_log.csv")
+        write_model(run, setup.whitening, setup.inputs, setup.out_dir)
+        write_log(state.history, setup.out_dir / "training_log.csv")
     run.ranks.barrier()
     return summary(state, model_path, finished=True)
 
 
-def _training_batches(cfg, train_shards, whitening, inputs):
-    """The training set: the stream as given (with the run's whitening and inputs), or
-    the shards shuffled per epoch."""
+def _training_batches(setup: _Setup, train_shards):
+    """The training set: a copy of the stream with the run's whitening, inputs and
+    pre-processing, or the shards shuffled per epoch; this rank's part of it."""
+    cfg = setup.cfg
     if isinstance(train_shards, StreamBatches):
         if train_shards.batch_size != cfg["batch_size"]:
             raise ValueError(
                 f"the training stream has batches of {train_shards.batch_size} images, "
                 f"training.batch_size is {cfg['batch_size']}"
             )
-        train_shards.whitening, train_shards.inputs = whitening, inputs
-        train_shards.pixel_scale, train_shards.mask_factor = cfg["pixel_scale"], cfg["mask_factor"]
-        return train_shards
-    return ShardBatches(
-        train_shards,
-        cfg["batch_size"],
-        whitening,
-        shuffle=True,
-        seed=int(cfg["seed"]),
-        block_size=cfg["block_size"],
-        window=cfg["shuffle_window"],
-        drop_last=True,
-        pixel_scale=cfg["pixel_scale"],
-        mask_factor=cfg["mask_factor"],
-        inputs=inputs,
-    )
+        ds = copy.copy(train_shards)
+        ds.whitening, ds.inputs = setup.whitening, setup.inputs
+        ds.pixel_scale, ds.mask_factor = cfg["pixel_scale"], cfg["mask_factor"]
+    else:
+        ds = ShardBatches(
+            train_shards,
+            cfg["batch_size"],
+            setup.whitening,
+            shuffle=True,
+            seed=int(cfg["seed"]),
+            block_size=cfg["block_size"],
+            window=cfg["shuffle_window"],
+            drop_last=True,
+            pixel_scale=cfg["pixel_scale"],
+            mask_factor=cfg["mask_factor"],
+            inputs=setup.inputs,
+        )
+    if setup.ranks.size > 1:
+        ds.part = (setup.ranks.rank, setup.ranks.size)
+    if len(ds) == 0:
+        raise ValueError(
+            f"training shards hold {ds.n_images} images, fewer than one batch of "
+            f"{cfg['batch_size']}"
+        )
+    return ds

@@ -23,6 +23,7 @@ __all__ = [
     "SceneStream",
     "training_stream",
     "run_training",
+    "train_job",
 ]
 
 
@@ -236,6 +237,58 @@ def run_training(
         raise RuntimeError(
             f"training stopped before the end ({summary}); run again to resume from {ckpt_dir}"
         )
+    return summary
+
+
+def train_job(
+    run: Mapping[str, Any],
+    *,
+    training: Mapping[str, Any],
+    train_shards: Sequence,
+    val_shards: Sequence,
+    whitening,
+    model_path,
+    ckpt_dir,
+    device: str,
+    stream: Mapping[str, Any] | None,
+    stream_data: Sequence = (),
+    threads: int | None = None,
+) -> dict[str, Any]:
+    """The workflow's training job (rule train_estimator): ``training``, ``ckpt_dir``,
+    ``device`` and ``stream`` are the rule's params (:func:`training_section`, the
+    checkpoint folder, ``training.device``, the streamed scene's resolved config or None),
+    ``run`` the workflow's config (its ``training.ranks``: processes, not a param since
+    their number does not change the training); ``stream_data``: the files a stream
+    simulates from, checked first; ``threads``: torch's CPU threads. A device this machine
+    lacks fails before anything runs."""
+    import logging
+
+    import torch
+
+    from subslope.devices import pick_device
+    from subslope.io.resources import verify_files
+    from subslope.stages.simulate import runnable_config
+
+    pick_device(device, key="training.device")
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    log = logging.getLogger(__name__)
+    log.info("checkpoints in %s (kept across reruns; a restarted job resumes)", ckpt_dir)
+    if stream is not None:  # training.data: stream
+        verify_files(list(stream_data))
+        stream = runnable_config(stream, run)
+    summary = run_training(
+        training,
+        list(train_shards),
+        list(val_shards),
+        whitening,
+        os.path.dirname(model_path),
+        ckpt_dir,
+        device=device,
+        stream=stream,
+        ranks=run["training"]["ranks"],
+    )
+    log.info("training done: %s", summary)
     return summary
 
 
