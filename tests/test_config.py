@@ -685,15 +685,16 @@ def test_cli_cost_prints_every_line(capsys):
 
 
 def test_a_config_is_validated_once_per_process(monkeypatch):
-    """Validating a config, then its validated result, then that again runs the schema
-    and the cross-key checks once; a changed config is validated anew."""
+    """Validating a config, then its validated result, then that again runs the
+    cross-key checks (the last step of a full validation) once; a changed config is
+    validated anew."""
     calls = []
-    real = cfg._validate
-    monkeypatch.setattr(cfg, "_VALIDATED", {})
-    monkeypatch.setattr(cfg, "_validate", lambda c, fill: calls.append(1) or real(c, fill))
+    real = cfg.cross_key_problems
+    monkeypatch.setattr(cfg, "cross_key_problems", lambda c: calls.append(1) or real(c))
     raw = cfg.load(REPO_ROOT / "config" / "tiny.yaml", env=False)
+    raw["seed"] = 987_654_321  # a config no other test validated in this process
     once = cfg.validate(raw)
     assert cfg.validate(cfg.validate(once)) == once and len(calls) == 1
     changed = copy.deepcopy(raw)
-    changed["seed"] = int(changed.get("seed", 0)) + 1
+    changed["seed"] += 1
     assert cfg.validate(changed)["seed"] == changed["seed"] and len(calls) == 2

@@ -10,14 +10,17 @@ the SUBSLOPE_DATA_MIRROR environment variable.
 from __future__ import annotations
 
 import json
+import os
+import re
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from subslope.campaigns.targets import SUMMARY_CSVS
 from subslope.figures.gallery import log_stretch_limits
-from tests.conftest import TINY
+from tests.conftest import REPO_ROOT, TINY
 from tests.conftest import run_snakemake as snakemake
 
 REPO = Path(__file__).resolve().parents[1]
@@ -340,18 +343,7 @@ def campaign(tiny_run) -> Path:
 
 
 #: The CSVs beside results/summary.md.
-SUMMARY_TABLES = (
-    "hst_result",
-    "cdm_prediction",
-    "coverage",
-    "null_tests",
-    "halo_free",
-    "nsub_bias",
-    "cdm_visibility",
-    "trend",
-    "stage_runtime",
-    "response",
-)
+SUMMARY_TABLES = SUMMARY_CSVS
 
 FIGURES = (
     "hst_gallery",
@@ -615,3 +607,24 @@ def test_real_run_tiny_reruns(tiny_run, campaign, data_dir):
         "all": 1,
     }
     assert "results/simulate_shard/nfw/a2/shard_0.h5" in proc.stdout
+
+
+def test_readme_python_example_runs_on_the_tiny_campaign(tiny_run, campaign, capsys):
+    """The README's Python block, as written but for the config file (the tiny
+    campaign's), run in the finished tiny campaign's folder: one line per image with a
+    γ_MLE on the grid and an interval around it."""
+    readme = (REPO_ROOT / "README.md").read_text(encoding="utf-8")
+    block = readme.split("### From Python", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert 'config.load("config/config.yaml")' in block
+    code = block.replace('config.load("config/config.yaml")', 'config.load("config/tiny.yaml")')
+    here = os.getcwd()
+    try:
+        os.chdir(campaign)
+        exec(compile(code, "README.md", "exec"), {"__name__": "readme_example"})
+    finally:
+        os.chdir(here)
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("γ ")]
+    assert len(lines) == 4
+    for line in lines:
+        mle, lo, hi = (float(v) for v in re.findall(r"\d+\.\d+", line)[1:4])
+        assert 1.1 <= lo <= mle <= hi <= 2.9

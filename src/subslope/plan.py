@@ -6,6 +6,7 @@ seeds derived for the later stages, and how many cluster jobs a dry run's jobs m
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import os
 import re
@@ -21,6 +22,7 @@ from subslope.config import RUN_ONLY_RENDER_KEYS
 from subslope.simulation.resolve import resolved_scene, scene_multipliers
 
 __all__ = [
+    "runnable_config",
     "SHARD_DIR",
     "cache_folder_problems",
     "RUN_ONLY_RENDER_KEYS",
@@ -146,6 +148,21 @@ def with_stages_off(job: Mapping[str, Any]) -> dict[str, Any]:
     """``job`` (a :func:`shard_job_config`, perhaps without its ``stages``) with every
     stage flag off."""
     return {**job, "stages": stages_off()}
+
+
+def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str, Any]:
+    """The config a job of ``scene`` simulates with: its resolved sections ``job``
+    (:func:`subslope.plan.shard_job_config`) plus, from the workflow's config ``run``,
+    what changes no image: ``data`` (where the resources live) and the run-only render
+    keys; sets the compile cache (:func:`subslope.render.kernels.use_compile_cache`)."""
+    config = copy.deepcopy(with_stages_off(job))
+    config["data"] = copy.deepcopy(run["data"])
+    render = run["simulation"]["render"]
+    config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
+    from subslope.render.kernels import use_compile_cache
+
+    use_compile_cache(render.get("compile_cache"))
+    return config
 
 
 def plan_problems(config: Mapping[str, Any]) -> list[str]:

@@ -33,13 +33,12 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import os
 import random
 import sys
 import time
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager, nullcontext
-from dataclasses import asdict, dataclass, field, fields
+from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -70,12 +69,12 @@ from .distributed import (
     share_loss,
     sync_batch_norm,
 )
-from .inputs import InputTransform
 from .loss import NRELoss, negative_indices
 from .models import RatioEstimator, build_model
 from .preprocess import read_inputs, read_whitening
 from .stream import StreamBatches
 from .training_config import RESUME_SAFE_KEYS, config_hash, resolve_config
+from .training_state import TrainingSetup, TrainingState, deterministic_torch
 
 __all__ = [
     "CheckpointError",
@@ -84,7 +83,6 @@ __all__ = [
     "train",
     "load_estimator",
     "validation_loss",
-    "TrainingState",
 ]
 
 
@@ -167,7 +165,7 @@ def train(
     ranks = setup_ranks(device)
     if ranks.size > 1:
         device = rank_device(cfg, device, ranks)
-    setup = _Setup(
+    setup = TrainingSetup(
         cfg=cfg,
         chash=config_hash(cfg),
         device=device,
@@ -180,88 +178,17 @@ def train(
     )
     setup.ckpt_dir.mkdir(parents=True, exist_ok=True)
     try:
-        with _determinism(cfg, device):
+        with deterministic_torch(cfg, device):
             return _train(setup, train_shards, val_shards)
     finally:
         close_ranks(ranks)
-
-
-@contextmanager
-def _determinism(cfg: Mapping[str, Any], device: torch.device) -> Iterator[None]:
-    """torch's deterministic algorithms (``deterministic: true``) or cuDNN's autotuner on
-    CUDA, for the duration of the run; the previous settings restored after it."""
-    prev_det = torch.are_deterministic_algorithms_enabled()
-    prev_bench = torch.backends.cudnn.benchmark
-    if cfg["deterministic"]:
-        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-        torch.use_deterministic_algorithms(True)
-        torch.backends.cudnn.benchmark = False
-    elif device.type == "cuda":
-        torch.backends.cudnn.benchmark = True
-    try:
-        yield
-    finally:
-        torch.use_deterministic_algorithms(prev_det)
-        torch.backends.cudnn.benchmark = prev_bench
-
-
-@dataclass(frozen=True)
-class _Setup:
-    """What a training run is given: its config, devices, data transforms and folders."""
-
-    cfg: dict[str, Any]
-    chash: str
-    device: torch.device
-    ranks: Ranks
-    amp_dtype: torch.dtype | None
-    whitening: tuple[float, float]
-    inputs: InputTransform
-    out_dir: Path
-    ckpt_dir: Path
-
-    @property
-    def last_path(self) -> Path:
-        return self.ckpt_dir / "last.pt"
-
-    @property
-    def best_path(self) -> Path:
-        return self.ckpt_dir / "best.pt"
-
-
-@dataclass
-class TrainingState:
-    """Where a training run stands; saved whole in ``last.pt`` (as a mapping)."""
-
-    epoch: int = 0
-    batch_in_epoch: int = 0
-    step: int = 0
-    best_val: float = math.inf
-    bad_epochs: int = 0
-    history: list[dict[str, Any]] = field(default_factory=list)
-    loss_sum: float = 0.0
-    loss_count: int = 0
-    train_seconds: float = 0.0
-    finished: bool = False
-    stop_reason: str | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, saved: Mapping[str, Any]) -> TrainingState:
-        """The state of a checkpoint's mapping (keys it lacks keep their start values)."""
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in saved.items() if k in known})
-
-    def stop(self, reason: str) -> None:
-        self.finished, self.stop_reason = True, reason
 
 
 @dataclass
 class _Run:
     """The model, its optimiser and losses, and the state of one training run."""
 
-    setup: _Setup
+    setup: TrainingSetup
     model: RatioEstimator
     opt: Any
     sched: Any
@@ -336,7 +263,7 @@ def _label_norm(train_shards) -> tuple[float, float]:
     return gamma_mean, gamma_std
 
 
-def _start(setup: _Setup, train_shards) -> _Run:
+def _start(setup: TrainingSetup, train_shards) -> _Run:
     """Seed every generator, build the model, optimiser, scheduler and losses (with
     several ranks: batch norm over the whole batch, DistributedDataParallel)."""
     cfg, device = setup.cfg, setup.device
@@ -580,7 +507,7 @@ def _end_epoch(run: _Run, val_ds) -> None:
         write_log(state.history, run.setup.out_dir / "training_log.csv")
 
 
-def _train(setup: _Setup, train_shards, val_shards) -> dict[str, Any]:
+def _train(setup: TrainingSetup, train_shards, val_shards) -> dict[str, Any]:
     """The loop: epochs until early stopping or ``max_epochs`` (or ``max_steps``), then
     ``model.pt`` from the best weights."""
     cfg = setup.cfg
@@ -617,7 +544,7 @@ def _train(setup: _Setup, train_shards, val_shards) -> dict[str, Any]:
     return summary(state, model_path, finished=True)
 
 
-def _training_batches(setup: _Setup, train_shards):
+def _training_batches(setup: TrainingSetup, train_shards):
     """The training set: a copy of the stream with the run's whitening, inputs and
     pre-processing, or the shards shuffled per epoch; this rank's part of it."""
     cfg = setup.cfg

@@ -8,16 +8,15 @@ that use them: a shard job that finds its shard in the cache never loads torch.
 
 from __future__ import annotations
 
-import copy
 import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from subslope.config import RUN_ONLY_RENDER_KEYS, config_hash
+from subslope.config import config_hash
 from subslope.io.shard_cache import code_digest, put_in_cache, take_from_cache
 from subslope.io.shards import FORMAT_VERSION
-from subslope.plan import with_stages_off
+from subslope.plan import runnable_config, with_stages_off
 from subslope.simulation.resolve import simulation_sections
 
 __all__ = [
@@ -88,21 +87,6 @@ def plot_scene_examples_from_shard(*args, **kwargs):
     from subslope.figures.gallery import plot_scene_examples_from_shard as plot
 
     return plot(*args, **kwargs)
-
-
-def runnable_config(job: Mapping[str, Any], run: Mapping[str, Any]) -> dict[str, Any]:
-    """The config a job of ``scene`` simulates with: its resolved sections ``job``
-    (:func:`subslope.plan.shard_job_config`) plus, from the workflow's config ``run``,
-    what changes no image: ``data`` (where the resources live) and the run-only render
-    keys; sets the compile cache (:func:`subslope.render.kernels.use_compile_cache`)."""
-    config = copy.deepcopy(with_stages_off(job))
-    config["data"] = copy.deepcopy(run["data"])
-    render = run["simulation"]["render"]
-    config["simulation"]["render"].update({k: render[k] for k in RUN_ONLY_RENDER_KEYS})
-    from subslope.render.kernels import use_compile_cache
-
-    use_compile_cache(render.get("compile_cache"))
-    return config
 
 
 def simulate_shard_job(

@@ -267,7 +267,7 @@ def train_job(
 
     from subslope.devices import pick_device
     from subslope.io.resources import verify_files
-    from subslope.stages.simulate import runnable_config
+    from subslope.plan import runnable_config
 
     pick_device(device, key="training.device")
     if threads is not None:
