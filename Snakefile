@@ -58,7 +58,7 @@ wildcard_constraints:
 
 # `serial` (a unit per grouped shard or profile job) is counted within one cluster job
 # only: profiles/slurm allows one at a time, so a group's members run one after another
-# and the group asks for the sum of their wall times (workflow/rules/common.smk).
+# and the group asks for the sum of their wall times (profiles/slurm/config.yaml).
 resource_scopes:
     serial="local",
 

@@ -118,3 +118,22 @@ def test_the_citation_file_carries_the_package_version():
 
     cff = yaml.safe_load((REPO_ROOT / "CITATION.cff").read_text(encoding="utf-8"))
     assert cff["version"] == __version__ and "arXiv:2308.09739" in str(cff)
+
+
+def test_the_readme_states_the_results_page_verdicts():
+    """The front page's current result and the generated results page's verdicts agree:
+    the same stack ρ, coverage, halo-free verdict, figure-4 verdicts and HST reading."""
+    readme = (REPO_ROOT / "README.md").read_text(encoding="utf-8")
+    result = " ".join(readme.split("## The current result", 1)[1].split("\n## ", 1)[0].split())
+    page = (DOCS / "results.md").read_text(encoding="utf-8")
+    verdict = " ".join(page.split("## Verdict", 1)[1].split("\n## ", 1)[0].split())
+    rho = re.search(r"Spearman ρ = (\d\.\d+)", verdict).group(1)
+    assert f"ρ {rho}" in result
+    assert "within 2σ of the level at every N" in verdict and "coverage within 2σ" in result
+    assert "(halo-free null test passes)" in verdict and "halo-free null test passes" in result
+    assert "no reading maps to a slope" in verdict and "maps to a slope**" in result
+    assert "not settled" in verdict and "**not settled**" in result
+    hst = re.search(r"read γ_MLE = (\d\.\d+), 68% interval \[(\d\.\d+), (\d\.\d+)\]", verdict)
+    assert f"γ_MLE = {hst.group(1)} [{hst.group(2)}, {hst.group(3)}]" in result
+    null_range = "inside the 16–84% range of the 13-image stacks of the subhalo-free scenes"
+    assert null_range in verdict and "**a symptom, not a measurement of γ**" in result
