@@ -242,10 +242,10 @@ def _hst(t: _Tables) -> list[str]:
         f"The {n} HST lenses combined read γ_MLE = {mle:.2f}, 68% interval [{lo:.2f}, "
         f"{hi:.2f}]" + (" (open at the prior edge: a bound at most)" if edge else "") + "."
     )
-    nulls = [x for x in t.rows("null_tests.csv") if x.get("n_per_stack") == n]
-    inside = [
-        x["scene"] for x in nulls if _num(x["stack_mle_p16"]) <= mle <= _num(x["stack_mle_p84"])
-    ]
+    from subslope.stages.summary_hst import null_ranges, null_scenes_holding
+
+    nulls = null_ranges(t.rows("null_tests.csv"), n)
+    inside = [scene for scene, _, _ in null_scenes_holding(mle, nulls)]
     if not t.read("null_tests.csv"):
         text += (
             " Not checked against the subhalo-free null stacks (null_tests.csv could not be "

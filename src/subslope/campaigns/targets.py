@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from subslope import config as _config
+from subslope.campaigns.seeds import SEEDS_CSV
 from subslope.io import observation_set
 from subslope.io.resources import load_registry
 from subslope.plan import derived_seed as _derived_seed
@@ -38,9 +39,6 @@ SUMMARY_CSVS = (
 )
 #: The records of ``studies/concentration_classifier.py`` (run by hand; no rule makes them).
 CLASSIFIER_DIR = "results/studies/concentration_classifier"
-#: The table of trainings that ``subslope seeds`` writes
-#: (:data:`subslope.campaigns.seeds.SEEDS_CSV`).
-SEEDS_CSV = "results/seeds/seeds.csv"
 #: Methods of :class:`Targets` the rule files call by name.
 HELPERS = (
     "resource_files", "data_inputs", "observation_inputs", "observation_source",

@@ -17,6 +17,8 @@ __all__ = [
     "HST_COLUMNS",
     "hst_section",
     "against_null_stacks",
+    "null_ranges",
+    "null_scenes_holding",
     "leave_one_out_lines",
     "seeds_markdown",
     "seeds_lines",
@@ -94,15 +96,30 @@ def hst_section(folder: Path, hst_csv, null_csv=None) -> list[str]:
 
 
 def _null_ranges(null_csv, n_images: int) -> list[tuple[str, float, float]]:
-    """(scene, 16%, 84%) of the stack γ_MLE of every subhalo-free null scene stacked
-    ``n_images`` deep."""
+    """:func:`null_ranges` of the rows of ``null_tests.csv`` (none without the file)."""
     import pandas as pd
 
     if not null_csv:
         return []
-    null = pd.read_csv(null_csv)
-    null = null[null["n_per_stack"] == n_images]
-    return [(r.scene, float(r.stack_mle_p16), float(r.stack_mle_p84)) for r in null.itertuples()]
+    return null_ranges(pd.read_csv(null_csv).to_dict("records"), n_images)
+
+
+def null_ranges(rows, n_images) -> list[tuple[str, float, float]]:
+    """(scene, 16%, 84%) of the stack γ_MLE of every subhalo-free null scene stacked
+    ``n_images`` deep; ``rows``: the rows of ``null_tests.csv`` as mappings (numbers or
+    their text)."""
+    return [
+        (str(r["scene"]), float(r["stack_mle_p16"]), float(r["stack_mle_p84"]))
+        for r in rows
+        if int(float(r["n_per_stack"])) == int(float(n_images))
+    ]
+
+
+def null_scenes_holding(mle: float, ranges) -> list[tuple[str, float, float]]:
+    """The :func:`null_ranges` whose 16–84% range holds the combined γ_MLE ``mle``: where
+    the HST reading does not tell the lenses from images without subhalos (the verdict
+    of the summary and of the results page alike)."""
+    return [(scene, lo, hi) for scene, lo, hi in ranges if lo <= mle <= hi]
 
 
 def against_null_stacks(mle: float, n_images: int, null_csv) -> list[str]:
@@ -112,8 +129,9 @@ def against_null_stacks(mle: float, n_images: int, null_csv) -> list[str]:
     ranges = _null_ranges(null_csv, n_images)
     if not ranges:
         return []
+    holding = null_scenes_holding(mle, ranges)
     parts = [
-        f"{scene} {'inside' if lo <= mle <= hi else 'outside'} [{lo:.2f}, {hi:.2f}]"
+        f"{scene} {'inside' if (scene, lo, hi) in holding else 'outside'} [{lo:.2f}, {hi:.2f}]"
         for scene, lo, hi in ranges
     ]
     return [
@@ -215,7 +233,8 @@ def meaning_lines(hst_result_csv, null_csv=None, seeds_csv=None) -> list[str]:
     reasons = []
     ranges = _null_ranges(null_csv, int(row["n_images"]))
     inside = [
-        f"{scene} [{lo16:.2f}, {hi84:.2f}]" for scene, lo16, hi84 in ranges if lo16 <= mle <= hi84
+        f"{scene} [{lo16:.2f}, {hi84:.2f}]"
+        for scene, lo16, hi84 in null_scenes_holding(mle, ranges)
     ]
     if inside:
         reasons.append(
