@@ -67,10 +67,10 @@ def render_seconds(profile: str, n_sub: float) -> float:
         raise ValueError(f"no render cost for subhalo profile {profile!r}; known: {known}")
     pts = RENDER_SECONDS[profile]
     n = max(0.0, float(n_sub))
-    for (n0, s0), (n1, s1) in zip(pts, pts[1:]):
-        if n <= n1 or (n1, s1) == pts[-1]:
-            return s0 + (s1 - s0) * (n - n0) / (n1 - n0)
-    return pts[-1][1]
+    # the segment holding n, or the last one continued beyond the last point
+    k = next((i for i in range(1, len(pts)) if n <= pts[i][0]), len(pts) - 1)
+    (n0, s0), (n1, s1) = pts[k - 1], pts[k]
+    return s0 + (s1 - s0) * (n - n0) / (n1 - n0)
 
 
 def _scene_seconds(scene) -> float:
